@@ -1,0 +1,102 @@
+"""Rotations: the paper's ZYZ Euler angles at the API edge, rotation vectors inside.
+
+All functions are pure `jax.numpy`, NaN-safe (a "safe operand" is formed with `jnp.where` *before*
+any singular operation, with a Taylor branch near the singularity), and broadcast over leading axes.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def _eps(dtype) -> float:
+    return 1e-5 if jnp.dtype(dtype) == jnp.float32 else 1e-10
+
+
+def skew(w):
+    """(..., 3) -> (..., 3, 3) cross-product matrix, `skew(w) @ v == cross(w, v)`."""
+    z = jnp.zeros_like(w[..., 0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -w[..., 2], w[..., 1]], -1),
+            jnp.stack([w[..., 2], z, -w[..., 0]], -1),
+            jnp.stack([-w[..., 1], w[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def exp(w):
+    """Rotation vector (..., 3) [rad] -> rotation matrix (..., 3, 3) (Rodrigues)."""
+    t2 = jnp.sum(w * w, -1)[..., None, None]
+    small = t2 < _eps(w.dtype)
+    t2s = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2s)
+    a = jnp.where(small, 1.0 - t2 / 6.0, jnp.sin(t) / t)
+    b = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / t2s)
+    k = skew(w)
+    eye = jnp.eye(3, dtype=w.dtype)
+    return eye + a * k + b * (k @ k)
+
+
+def _quaternion(R):
+    """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4) as (w, x, y, z), w >= 0 (Shepperd)."""
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cands = jnp.stack(
+        [
+            jnp.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
+            jnp.stack([R[..., 2, 1] - R[..., 1, 2], 1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
+            jnp.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1]], -1),
+            jnp.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1 - m00 - m11 + m22], -1),
+        ],
+        -2,
+    )
+    diag = jnp.stack([tr, m00, m11, m22], -1)
+    i = jnp.argmax(diag, -1)
+    q = jnp.take_along_axis(cands, i[..., None, None], -2)[..., 0, :]
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+def log(R):
+    """Rotation matrix (..., 3, 3) -> rotation vector (..., 3) with angle in [0, pi]."""
+    q = _quaternion(R)
+    w, v = q[..., 0], q[..., 1:]
+    n2 = jnp.sum(v * v, -1)
+    small = n2 < _eps(R.dtype)
+    n = jnp.sqrt(jnp.where(small, 1.0, n2))
+    scale = jnp.where(small, 2.0 / w - 2.0 * n2 / (3.0 * w**3), 2.0 * jnp.arctan2(n, w) / n)
+    return v * scale[..., None]
+
+
+def _rz(a):
+    c, s, z, o = jnp.cos(a), jnp.sin(a), jnp.zeros_like(a), jnp.ones_like(a)
+    return jnp.stack([jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2)
+
+
+def _ry(a):
+    c, s, z, o = jnp.cos(a), jnp.sin(a), jnp.zeros_like(a), jnp.ones_like(a)
+    return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
+
+
+def from_euler(angles):
+    """ZYZ Euler angles (..., 3) = (phi, theta, psi) [rad] -> R = Rz(phi) Ry(theta) Rz(psi), (..., 3, 3).
+
+    This is the convention of Solina & Bajcsy (1990) and of the paper's eq. 6.
+    """
+    angles = jnp.asarray(angles)
+    return _rz(angles[..., 0]) @ _ry(angles[..., 1]) @ _rz(angles[..., 2])
+
+
+def to_euler(R):
+    """Rotation matrix (..., 3, 3) -> ZYZ Euler angles (..., 3), theta in [0, pi].
+
+    At the gimbal lock (theta = 0 or pi) psi is set to 0 and phi carries the whole rotation.
+    """
+    theta = jnp.arctan2(jnp.hypot(R[..., 0, 2], R[..., 1, 2]), R[..., 2, 2])
+    s = jnp.hypot(R[..., 0, 2], R[..., 1, 2])
+    lock = s < _eps(R.dtype)
+    phi = jnp.where(lock, jnp.arctan2(-R[..., 0, 1], R[..., 1, 1]), jnp.arctan2(R[..., 1, 2], R[..., 0, 2]))
+    psi = jnp.where(lock, 0.0, jnp.arctan2(R[..., 2, 1], -R[..., 2, 0]))
+    return jnp.stack([phi, theta, psi], -1)

@@ -1,0 +1,278 @@
+"""The superquadric: parameters, inside-outside function (eq. 5), residual (eq. 7), distances (eq. 10).
+
+Every function here is pure `jax.numpy` for one superquadric and points of shape `(..., 3)`; use
+`jax.vmap` for batches. Powers `|x / a| ** (2 / e)` are evaluated in the log domain,
+`exp((2 / e) * (log|x| - log a))`, with `log|x|` taken of a safe operand, so values and gradients are
+finite for every finite input (at the centre, on the axes, far away, e down to 0.1).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import rotation as so3
+
+EPSILON_RANGE = (0.1, 1.9)
+"""Range the shape exponents e1, e2 are kept in."""
+
+
+def _tiny(dtype):
+    return jnp.finfo(dtype).tiny
+
+
+def _log_cap(dtype):
+    # F is capped at exp(cap): far beyond any data (|x / a| ~ 1e4 in float32) yet f**2 cannot overflow.
+    return 20.0 if jnp.dtype(dtype) == jnp.float32 else 60.0
+
+
+class Superquadric(eqx.Module):
+    """A superquadric in general position, optionally tapered and bent (Solina & Bajcsy 1990).
+
+    Fields (leading batch axes allowed, all the same):
+
+    - `size`: `(..., 3)` half-axes a1, a2, a3 > 0, in the units of the points.
+    - `epsilon`: `(..., 2)` shape exponents e1 (north-south, along z), e2 (east-west, in xy).
+    - `rotation`: `(..., 3, 3)` matrix whose columns are the model axes in world coordinates.
+    - `translation`: `(..., 3)` model centre in world coordinates.
+    - `taper`: `(..., 2)` tapering Kx, Ky along z, in [-1, 1]; zero for none.
+    - `bend`: `(..., 2)` bending curvature k >= 0 (1 / units) and direction angle alpha (rad); k = 0 for none.
+    """
+
+    size: jax.Array
+    epsilon: jax.Array
+    rotation: jax.Array
+    translation: jax.Array
+    taper: jax.Array
+    bend: jax.Array
+
+    @classmethod
+    def create(cls, size, epsilon=(1.0, 1.0), *, rotation=None, euler=None, translation=(0.0, 0.0, 0.0),
+               taper=(0.0, 0.0), bend=(0.0, 0.0), dtype=jnp.float32) -> "Superquadric":
+        """Build from plain values; `euler` = ZYZ angles (phi, theta, psi) as in the paper, or `rotation`."""
+        size = jnp.asarray(size, dtype)
+        batch = size.shape[:-1]
+        if rotation is None:
+            rotation = so3.from_euler(jnp.asarray(euler if euler is not None else (0.0, 0.0, 0.0), dtype))
+        f = lambda v, n: jnp.broadcast_to(jnp.asarray(v, dtype), batch + (n,))  # noqa: E731
+        return cls(size, f(epsilon, 2), jnp.broadcast_to(jnp.asarray(rotation, dtype), batch + (3, 3)),
+                   f(translation, 3), f(taper, 2), f(bend, 2))
+
+    @property
+    def euler(self) -> jax.Array:
+        """ZYZ Euler angles (phi, theta, psi), `(..., 3)` rad."""
+        return so3.to_euler(self.rotation)
+
+    @property
+    def volume(self) -> jax.Array:
+        """Volume of the undeformed solid, `(...)`: 2 a1 a2 a3 e1 e2 B(e1/2 + 1, e1) B(e2/2, e2/2)."""
+        e1, e2 = self.epsilon[..., 0], self.epsilon[..., 1]
+        lb = lambda x, y: jax.scipy.special.gammaln(x) + jax.scipy.special.gammaln(y) - jax.scipy.special.gammaln(x + y)  # noqa: E731
+        return 2.0 * jnp.prod(self.size, -1) * e1 * e2 * jnp.exp(lb(e1 / 2 + 1, e1) + lb(e2 / 2, e2 / 2))
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready dict of one superquadric (see README, "models.json")."""
+        r = np.asarray(self.rotation, float)
+        return {
+            "size": np.asarray(self.size, float).tolist(),
+            "epsilon": np.asarray(self.epsilon, float).tolist(),
+            "rotation": r.tolist(),
+            "euler_zyz": np.asarray(self.euler, float).tolist(),
+            "translation": np.asarray(self.translation, float).tolist(),
+            "taper": np.asarray(self.taper, float).tolist(),
+            "bend": np.asarray(self.bend, float).tolist(),
+        }
+
+
+# ----------------------------------------------------------------------------------------------------
+# deformations (model frame)
+
+
+def _safe_div(num, den):
+    tiny = 1e-6 if den.dtype == jnp.float32 else 1e-12
+    den = jnp.where(jnp.abs(den) < tiny, jnp.where(den < 0, -tiny, tiny), den)
+    return num / den
+
+
+def untaper(x, taper, a3):
+    """Inverse tapering: deformed model-frame points (..., 3) -> undeformed."""
+    kz = x[..., 2:3] / a3
+    fx = taper[..., 0:1] * kz + 1.0
+    fy = taper[..., 1:2] * kz + 1.0
+    return jnp.concatenate([_safe_div(x[..., 0:1], fx), _safe_div(x[..., 1:2], fy), x[..., 2:3]], -1)
+
+
+def taper_points(x, taper, a3):
+    """Forward tapering of model-frame points (..., 3)."""
+    kz = x[..., 2:3] / a3
+    return jnp.concatenate([x[..., 0:1] * (taper[..., 0:1] * kz + 1.0),
+                            x[..., 1:2] * (taper[..., 1:2] * kz + 1.0), x[..., 2:3]], -1)
+
+
+def unbend(x, bend):
+    """Inverse bending (curvature k, angle alpha) in a form stable as k -> 0: (..., 3) -> (..., 3)."""
+    k, alpha = bend[..., 0:1], bend[..., 1:2]
+    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+    X, Y, Z = x[..., 0:1], x[..., 1:2], x[..., 2:3]
+    r = X * ca + Y * sa                       # projection on the bending plane
+    w = 1.0 - k * r
+    small = jnp.abs(k) < (1e-4 if x.dtype == jnp.float32 else 1e-8)
+    ks = jnp.where(small, 1.0, k)
+    kz = k * Z
+    z = jnp.where(small, _safe_div(Z, w), jnp.arctan2(ks * Z, w) / ks)
+    den = jnp.sqrt(kz * kz + w * w) + w
+    tiny = 1e-12 if x.dtype == jnp.float32 else 1e-30
+    shift = k * Z * Z / jnp.maximum(den, tiny)
+    return jnp.concatenate([X - ca * shift, Y - sa * shift, z], -1)
+
+
+def bend_points(x, bend):
+    """Forward bending of model-frame points (..., 3)."""
+    k, alpha = bend[..., 0:1], bend[..., 1:2]
+    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+    r = x[..., 0:1] * ca + x[..., 1:2] * sa
+    g = k * x[..., 2:3]
+    small = jnp.abs(k) < (1e-4 if x.dtype == jnp.float32 else 1e-8)
+    ks = jnp.where(small, 1.0, k)
+    # R - r = (1/k - r)(1 - cos g);  Z = (1/k - r) sin g, written without 1/k.
+    one_m_kr = 1.0 - k * r
+    dR = jnp.where(small, 0.0, one_m_kr * (1.0 - jnp.cos(g)) / ks)
+    Z = jnp.where(small, x[..., 2:3], one_m_kr * jnp.sin(g) / ks)
+    return jnp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)
+
+
+def to_model_frame(sq: Superquadric, points):
+    """World points (..., 3) -> undeformed model-frame points (..., 3): R^T (p - t), unbend, untaper."""
+    x = (points - sq.translation) @ sq.rotation
+    x = unbend(x, sq.bend)
+    return untaper(x, sq.taper, sq.size[..., 2:3])
+
+
+def to_world_frame(sq: Superquadric, x):
+    """Undeformed model-frame points (..., 3) -> world points: taper, bend, R x + t."""
+    x = taper_points(x, sq.taper, sq.size[..., 2:3])
+    x = bend_points(x, sq.bend)
+    return x @ jnp.swapaxes(sq.rotation, -1, -2) + sq.translation
+
+
+# ----------------------------------------------------------------------------------------------------
+# the inside-outside function and what is built on it
+
+
+def log_inside_outside_local(x, log_size, epsilon):
+    """log F (eq. 5) of model-frame points x (..., 3), for log sizes (3,) and exponents (2,).
+
+    `F = ((|x/a1|^(2/e2) + |y/a2|^(2/e2))^(e2/e1) + |z/a3|^(2/e1))^e1`, computed as two log-sum-exps.
+    Finite with finite gradients for every finite input; capped at a value far outside any model.
+    """
+    e1, e2 = epsilon[..., 0:1], epsilon[..., 1:2]
+    la = jnp.log(jnp.maximum(jnp.abs(x), _tiny(x.dtype))) - log_size
+    s = jnp.logaddexp(la[..., 0:1] * (2.0 / e2), la[..., 1:2] * (2.0 / e2))
+    t = jnp.logaddexp(s * (e2 / e1), la[..., 2:3] * (2.0 / e1))
+    return jnp.minimum(e1 * t, _log_cap(x.dtype))[..., 0]
+
+
+def inside_outside(sq: Superquadric, points):
+    """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside."""
+    x = to_model_frame(sq, points)
+    return jnp.exp(log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon))
+
+
+def contains(sq: Superquadric, points):
+    """Inside test, (..., 3) -> bool (...)."""
+    x = to_model_frame(sq, points)
+    return log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon) <= 0.0
+
+
+def residual(sq: Superquadric, points):
+    """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
+    return jnp.sqrt(jnp.prod(sq.size, -1)) * (inside_outside(sq, points) - 1.0)
+
+
+def distance(sq: Superquadric, points):
+    """Approximate Euclidean distance to the surface, |f| / ||grad_p f|| (eq. 10), (..., 3) -> (...).
+
+    Exact on the surface to first order; meant for points near the model (growing, selection).
+    """
+    def F(p):
+        return inside_outside(sq, p)
+
+    flat = points.reshape(-1, 3)
+    val, grad = jax.vmap(jax.value_and_grad(F))(flat)
+    g2 = jnp.sum(grad * grad, -1)
+    d = jnp.abs(val - 1.0) * jax.lax.rsqrt(g2 + _tiny(points.dtype) / jnp.finfo(points.dtype).eps)
+    return d.reshape(points.shape[:-1])
+
+
+def radial_distance(sq: Superquadric, points):
+    """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...)."""
+    x = to_model_frame(sq, points)
+    logF = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
+    n2 = jnp.sum(x * x, -1)
+    safe = n2 > _tiny(x.dtype)
+    n = jnp.sqrt(jnp.where(safe, n2, 1.0))
+    log_n = jnp.where(safe, jnp.log(n), jnp.log(_tiny(x.dtype)) / 2)
+    surf = jnp.exp(log_n - 0.5 * logF)  # |x| F^(-1/2): distance of the surface point along the ray
+    return jnp.abs(jnp.where(safe, n, 0.0) - surf)
+
+
+# ----------------------------------------------------------------------------------------------------
+# surfaces (host side)
+
+
+def _spow(c, e):
+    return np.sign(c) * np.abs(c) ** e
+
+
+def surface_grid(sq: Superquadric, resolution: int = 48):
+    """Parametric surface points, numpy `(resolution, 2 * resolution, 3)` in world coordinates."""
+    a = np.asarray(sq.size, float)
+    e1, e2 = np.asarray(sq.epsilon, float)
+    eta = np.linspace(-np.pi / 2, np.pi / 2, resolution)
+    om = np.linspace(-np.pi, np.pi, 2 * resolution, endpoint=False)
+    eta, om = np.meshgrid(eta, om, indexing="ij")
+    c = np.cos(eta)
+    c[[0, -1]] = 0.0  # exact poles, so the mesh closes
+    ce, se = _spow(c, e1), _spow(np.sin(eta), e1)
+    x = np.stack([a[0] * ce * _spow(np.cos(om), e2), a[1] * ce * _spow(np.sin(om), e2), a[2] * se], -1)
+    return np.asarray(to_world_frame(sq, jnp.asarray(x, sq.size.dtype)), float)
+
+
+def to_trimesh(sq: Superquadric, resolution: int = 48):
+    """Closed triangle mesh of one superquadric (`trimesh.Trimesh`), world coordinates."""
+    import trimesh
+
+    g = surface_grid(sq, resolution)
+    n_eta, n_om = g.shape[:2]
+    verts = g.reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n_eta - 1), np.arange(n_om), indexing="ij")
+    a = i * n_om + j
+    b = i * n_om + (j + 1) % n_om
+    c = (i + 1) * n_om + j
+    d = (i + 1) * n_om + (j + 1) % n_om
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    mesh = trimesh.Trimesh(verts, faces, process=True)  # merges the pole vertices
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.remove_unreferenced_vertices()
+    mesh.fix_normals()
+    return mesh
+
+
+def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.0, viewpoint=None):
+    """`n` points (numpy `(n, 3)`) uniform by area on the surface, with Gaussian noise of std `noise`.
+
+    With `viewpoint` (3,) only the side facing that point is sampled (one range-sensor view).
+    """
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    mesh = to_trimesh(sq, 64)
+    if viewpoint is not None:
+        centres = mesh.triangles_center
+        facing = np.einsum("ij,ij->i", mesh.face_normals, np.asarray(viewpoint, float) - centres) > 0
+        mesh = mesh.submesh([np.nonzero(facing)[0]], append=True)
+    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
+    return np.asarray(pts) + noise * rng.standard_normal((n, 3))
+
