@@ -3,6 +3,13 @@
 from importlib.metadata import PackageNotFoundError, version
 
 from . import rotation as rotation
+from .formats import read_points as read_points
+from .formats import read_range_image as read_range_image
+from .formats import write_points as write_points
+from .formats import write_range_image as write_range_image
+from .rangeimage import OrthographicCamera as OrthographicCamera
+from .rangeimage import PinholeCamera as PinholeCamera
+from .rangeimage import RangeImage as RangeImage
 from .superquadric import Superquadric as Superquadric
 from .superquadric import contains as contains
 from .superquadric import distance as distance

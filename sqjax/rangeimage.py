@@ -23,7 +23,8 @@ class PinholeCamera:
 
     def __post_init__(self):
         if not (np.isfinite([self.fx, self.fy, self.cx, self.cy]).all() and self.fx > 0 and self.fy > 0):
-            raise ValueError(f"PinholeCamera: focal lengths must be finite and > 0, got fx={self.fx}, fy={self.fy}")
+            raise ValueError("PinholeCamera: fx, fy must be finite and > 0 and cx, cy finite, got "
+                             f"fx={self.fx}, fy={self.fy}, cx={self.cx}, cy={self.cy}")
 
     def rays(self, shape):
         """(H, W, 3) points at depth 1 for an image of `shape` (H, W)."""
@@ -62,7 +63,8 @@ class OrthographicCamera:
 
     def back_project(self, depth):
         v, u = np.mgrid[0 : depth.shape[0], 0 : depth.shape[1]].astype(np.float64)
-        return np.stack([(u - self.cx) * self.pixel_size, (v - self.cy) * self.pixel_size, depth], -1)
+        pts = np.stack([(u - self.cx) * self.pixel_size, (v - self.cy) * self.pixel_size, depth], -1)
+        return np.where(np.isfinite(depth)[..., None], pts, np.nan)
 
     def project(self, points):
         return np.stack([points[..., 0] / self.pixel_size + self.cx, points[..., 1] / self.pixel_size + self.cy], -1), points[..., 2]
@@ -80,7 +82,13 @@ Camera = PinholeCamera | OrthographicCamera
 def camera_from_dict(d: dict) -> Camera:
     d = dict(d)
     model = d.pop("model", "pinhole")
-    return {"pinhole": PinholeCamera, "orthographic": OrthographicCamera}[model](**d)
+    kinds = {"pinhole": PinholeCamera, "orthographic": OrthographicCamera}
+    if model not in kinds:
+        raise ValueError(f"camera model must be one of {sorted(kinds)}, got {model!r}")
+    try:
+        return kinds[model](**d)
+    except TypeError as e:
+        raise ValueError(f"bad {model} camera parameters {d}: {e}") from None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -102,6 +110,8 @@ class RangeImage:
             raise ValueError(f"RangeImage: depth must be a non-empty (H, W) array, got shape {depth.shape}")
         if not np.issubdtype(depth.dtype, np.number):
             raise ValueError(f"RangeImage: depth must be numeric, got dtype {depth.dtype}")
+        if not isinstance(self.camera, (PinholeCamera, OrthographicCamera)):
+            raise ValueError(f"RangeImage: camera must be a PinholeCamera or OrthographicCamera, got {self.camera!r}")
         depth = depth.astype(np.float32 if depth.dtype != np.float64 else np.float64)
         depth = np.where(np.isfinite(depth) & (depth != 0), depth, np.nan)
         object.__setattr__(self, "depth", depth)
@@ -109,6 +119,10 @@ class RangeImage:
             labels = np.asarray(self.labels)
             if labels.shape != depth.shape:
                 raise ValueError(f"RangeImage: labels shape {labels.shape} != depth shape {depth.shape}")
+            if not np.issubdtype(labels.dtype, np.integer) and not np.array_equal(labels, np.round(labels)):
+                raise ValueError("RangeImage: labels must be integers")
+            if labels.size and (labels.min() < 0 or labels.max() > np.iinfo(np.int32).max):
+                raise ValueError("RangeImage: labels must lie in [0, 2**31)")
             object.__setattr__(self, "labels", labels.astype(np.int32))
         if self.points_override is not None:
             pts = np.asarray(self.points_override, np.float64)
@@ -134,6 +148,11 @@ class RangeImage:
 
     def crop(self, r0: int, r1: int, c0: int, c1: int) -> RangeImage:
         """Rows r0:r1, columns c0:c1, with the camera moved so every pixel keeps its ray."""
+        H, W = self.shape
+        r0, r1, _ = slice(r0, r1).indices(H)
+        c0, c1, _ = slice(c0, c1).indices(W)
+        if r1 <= r0 or c1 <= c0:
+            raise ValueError(f"RangeImage.crop: non-empty crop needed, got rows {r0}:{r1}, columns {c0}:{c1} of a {H}x{W} image")
         sl = (slice(r0, r1), slice(c0, c1))
         return RangeImage(self.depth[sl], self.camera.scaled(1, r0, c0),
                           None if self.labels is None else self.labels[sl],
