@@ -2,7 +2,15 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
+from . import evaluate as evaluate
 from . import rotation as rotation
+from . import scenes as scenes
+from .evaluate import HooverScore as HooverScore
+from .evaluate import explained_fraction as explained_fraction
+from .evaluate import hoover as hoover
+from .evaluate import parameter_errors as parameter_errors
+from .evaluate import volume_iou as volume_iou
+from .evaluate import volume_iou_batch as volume_iou_batch
 from .formats import read_points as read_points
 from .formats import read_range_image as read_range_image
 from .formats import write_points as write_points
@@ -10,6 +18,13 @@ from .formats import write_range_image as write_range_image
 from .rangeimage import OrthographicCamera as OrthographicCamera
 from .rangeimage import PinholeCamera as PinholeCamera
 from .rangeimage import RangeImage as RangeImage
+from .scenes import paper_scene as paper_scene
+from .scenes import random_scene as random_scene
+from .scenes import render as render
+from .segment import Segmentation as Segmentation
+from .segment import SegmentOptions as SegmentOptions
+from .segment import segment as segment
+from .selection import SelectionWeights as SelectionWeights
 from .superquadric import Superquadric as Superquadric
 from .superquadric import contains as contains
 from .superquadric import distance as distance

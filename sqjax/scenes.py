@@ -1,0 +1,354 @@
+"""Labelled synthetic range images by ray casting superquadrics and meshes (host side, numpy + trimesh).
+
+`render` casts one ray per pixel into the union of the parts and keeps the nearest hit: depth (z of the
+hit, NaN where nothing is hit) and a label image (0 background, i + 1 for part i). Superquadric hits are
+moved from the triangle mesh onto the exact surface F = 1 (eq. 5) by bisection along the ray, so every
+valid pixel back-projects onto its part. `paper_scene` rebuilds the three scenes of the paper's figures;
+`random_scene` draws seeded scenes of separate, touching, intersecting or occluding parts.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
+from .superquadric import (Superquadric, log_inside_outside_local, sample_surface, surface_grid, to_model_frame,
+                           to_trimesh)
+
+PAPER_SCENES = ("sphere_cylinder", "two_cylinders", "occluded_block")
+ARRANGEMENTS = ("separate", "touching", "intersecting", "occluding", "mixed")
+
+
+def default_camera(shape=(120, 160)) -> PinholeCamera:
+    """The pinhole camera of the synthetic scenes: fx = fy = image width (about 53 deg across), centred."""
+    h, w = shape
+    return PinholeCamera(float(w), float(w), (w - 1) / 2.0, (h - 1) / 2.0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# ray casting
+
+
+def _intersector(mesh):
+    try:
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+    except ImportError:  # no embreex: the pure numpy caster (slower, same answers)
+        from trimesh.ray.ray_triangle import RayMeshIntersector
+    return RayMeshIntersector(mesh)
+
+
+@jax.jit
+def _log_F_deformed(sq: Superquadric, pts):
+    return log_inside_outside_local(to_model_frame(sq, pts.astype(sq.size.dtype)), jnp.log(sq.size), sq.epsilon)
+
+
+def _log_F_np(size, epsilon, rotation, centre, pts: np.ndarray) -> np.ndarray:
+    """log F (eq. 5) of world points (n, 3) for an undeformed model, float64 numpy."""
+    (e1, e2), x = epsilon, (pts - centre) @ rotation
+    la = np.log(np.maximum(np.abs(x), 1e-300)) - np.log(size)
+    s = np.logaddexp(la[:, 0] * (2 / e2), la[:, 1] * (2 / e2))
+    return e1 * np.logaddexp(s * (e2 / e1), la[:, 2] * (2 / e1))
+
+
+def _log_F(sq: Superquadric, pts: np.ndarray) -> np.ndarray:
+    """log F of world points (n, 3) -> (n,), float64 numpy for undeformed models, sqjax's kernel otherwise."""
+    if np.any(np.asarray(sq.taper) != 0) or np.any(np.asarray(sq.bend)[..., 0] != 0):
+        n = len(pts)
+        pad = np.zeros((max(256, 1 << (n - 1).bit_length()) - n, 3))  # few buckets: few compilations
+        return np.asarray(_log_F_deformed(sq, np.concatenate([pts, pad + np.asarray(sq.translation)])), float)[:n]
+    return _log_F_np(*(np.asarray(v, float) for v in (sq.size, sq.epsilon, sq.rotation, sq.translation)), pts)
+
+
+def _refine(sq: Superquadric, o: np.ndarray, d: np.ndarray, t0: np.ndarray, iters: int = 48) -> np.ndarray:
+    """Move mesh hits t0 along rays o + t d onto the surface F = 1 (bisection); unbracketed hits are kept."""
+    g = lambda t: _log_F(sq, o + t[:, None] * d)  # noqa: E731
+    step = 1e-3 * float(np.min(np.asarray(sq.size)))
+    inside = g(t0) <= 0  # a convex model's mesh is inscribed: its hits lie just inside the solid
+    lo, hi = np.where(inside, t0 - step, t0), np.where(inside, t0, t0 + step)
+    ok = np.zeros(len(t0), bool)
+    for k in range(12):  # widen the bracket until log F changes sign across it
+        ok = (g(lo) > 0) & (g(hi) <= 0)
+        if ok.all():
+            break
+        grow = step * 2.0 ** (k + 1)
+        lo, hi = np.where(ok | ~inside, lo, t0 - grow), np.where(ok | inside, hi, t0 + grow)
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        out = g(mid) > 0
+        lo, hi = np.where(out, mid, lo), np.where(out, hi, mid)
+    return np.where(ok, 0.5 * (lo + hi), t0)
+
+
+def _rays(camera, shape):
+    """Per-pixel rays o + t d (n, 3) with o_z = 0 and d_z = 1, so that t is the depth (z) of a point."""
+    h, w = shape
+    if isinstance(camera, PinholeCamera):
+        d = camera.rays(shape).reshape(-1, 3)
+        return np.zeros_like(d), d
+    o = camera.back_project(np.zeros(shape)).reshape(-1, 3)
+    d = np.zeros((h * w, 3))
+    d[:, 2] = 1.0
+    return o, d
+
+
+def _meshes(parts, resolution: int):
+    return [p if not isinstance(p, Superquadric) else to_trimesh(p, resolution) for p in parts]
+
+
+def _cast(meshes, camera, shape):
+    """Nearest hits: (depth (H, W) float64 NaN where none, labels (H, W) int32, ray origins, directions)."""
+    import trimesh
+
+    verts = [np.asarray(m.vertices, float) for m in meshes]
+    offsets = np.cumsum([0] + [len(v) for v in verts])[:-1]
+    faces = np.concatenate([np.asarray(m.faces) + off for m, off in zip(meshes, offsets)])
+    owner = np.repeat(np.arange(len(meshes), dtype=np.int32), [len(m.faces) for m in meshes])
+    scene = trimesh.Trimesh(np.concatenate(verts), faces, process=False)
+    if not isinstance(camera, (PinholeCamera, OrthographicCamera)):
+        raise TypeError(f"render: unsupported camera {type(camera).__name__}")
+    o, d = _rays(camera, shape)
+    start = o.copy()
+    if isinstance(camera, OrthographicCamera):  # parallel rays start in front of every part
+        start[:, 2] = float(scene.bounds[0, 2]) - 0.1 * float(np.ptp(scene.bounds[:, 2])) - 1e-3
+    tri = _intersector(scene).intersects_first(start, d)
+    depth = np.full(len(o), np.nan)
+    hit = tri >= 0
+    v0, n = scene.triangles[tri[hit], 0], scene.face_normals[tri[hit]]
+    depth[hit] = np.einsum("ij,ij->i", n, v0 - o[hit]) / np.einsum("ij,ij->i", n, d[hit])  # plane-line, d_z = 1
+    labels = np.zeros(len(o), np.int32)
+    labels[hit] = owner[tri[hit]] + 1
+    return depth, labels, o, d
+
+
+def _render(parts, meshes, camera, shape, *, noise, dropout, seed, refine=True) -> RangeImage:
+    shape = tuple(int(s) for s in shape)
+    depth, labels, o, d = _cast(meshes, camera, shape)
+    if refine:
+        for i, p in enumerate(parts):
+            sel = np.nonzero(labels == i + 1)[0]
+            if isinstance(p, Superquadric) and len(sel):
+                depth[sel] = _refine(p, o[sel], d[sel], depth[sel])
+    depth, labels = depth.reshape(shape), labels.reshape(shape)
+    rng = np.random.default_rng(seed)
+    if noise > 0:
+        depth = depth + noise * rng.standard_normal(shape)
+    if dropout > 0:
+        idx = np.flatnonzero(labels)
+        drop = rng.choice(idx, int(round(dropout * len(idx))), replace=False)
+        depth.flat[drop], labels.flat[drop] = np.nan, 0
+    return RangeImage(depth.astype(np.float32), camera, labels)
+
+
+def render(parts, camera, shape, *, noise: float = 0.0, dropout: float = 0.0, seed: int = 0,
+           resolution: int = 64, refine: bool = True) -> RangeImage:
+    """Ray-cast a range image of `parts` (list of `Superquadric` and/or `trimesh.Trimesh`, camera frame).
+
+    **Arguments:**
+    - `camera`: `PinholeCamera` (rays from the origin through the pixel centres) or `OrthographicCamera`
+      (rays along +z from in front of all parts). `shape`: (H, W).
+    - `noise`: std of Gaussian noise added to the depth (depth units); `dropout`: fraction of the valid
+      pixels made missing (depth NaN, label 0); both drawn from `numpy.random.default_rng(seed)`.
+    - `resolution`: mesh resolution of the superquadrics; `refine`: move their hits onto F = 1 exactly.
+
+    **Returns:** `RangeImage` with depth = z of the nearest hit (NaN where none) and labels (H, W) int32:
+    0 background, i + 1 where part i is the nearest surface.
+    """
+    parts = list(parts)
+    if not parts:
+        raise ValueError("render: no parts to render")
+    if not 0.0 <= dropout <= 1.0 or noise < 0:
+        raise ValueError(f"render: need noise >= 0 and dropout in [0, 1], got {noise}, {dropout}")
+    return _render(parts, _meshes(parts, resolution), camera, shape, noise=noise, dropout=dropout, seed=seed,
+                   refine=refine)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the paper's scenes
+
+
+def _rx(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+# world (table) frame: x, y on the table, z up  ->  camera frame (x right, y down, z forward), seen
+# from 35 deg azimuth and 30 deg elevation so that boxes show three faces.
+_TABLE_TO_CAMERA = _rx(np.radians(30)) @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) @ _rz(np.radians(35))
+
+
+def _table_part(size, epsilon, centre, rotation=np.eye(3), *, look_at=(0.0, 0.0, 0.7), distance=5.0):
+    t = _TABLE_TO_CAMERA @ (np.asarray(centre, float) - look_at) + (0.0, 0.0, distance)
+    return Superquadric.create(size, epsilon, rotation=_TABLE_TO_CAMERA @ rotation, translation=t)
+
+
+def _paper_parts(name: str) -> list[Superquadric]:
+    if name == "sphere_cylinder":  # Figure 1: a sphere and a cylinder standing apart
+        return [_table_part((0.6, 0.6, 0.6), (1.0, 1.0), (-0.95, 0.0, 0.6)),
+                _table_part((0.45, 0.45, 0.8), (0.1, 1.0), (0.95, 0.2, 0.8))]
+    if name == "two_cylinders":  # Figure 2: two intersecting cylinders, a cross
+        return [_table_part((0.4, 0.4, 1.1), (0.1, 1.0), (0.0, 0.0, 1.1)),
+                _table_part((0.3, 0.3, 1.25), (0.1, 1.0), (0.0, 0.0, 1.3), _ry(np.pi / 2))]
+    if name == "occluded_block":  # Figure 3: a block split in two by a nearer cylinder, and a sphere
+        block_c = np.array([-0.2, 0.7, 0.4])
+        cam = -_TABLE_TO_CAMERA.T @ (_TABLE_TO_CAMERA @ -np.array([0.0, 0.0, 0.7]) + (0.0, 0.0, 5.0))
+        towards = (cam - block_c)[:2] / np.linalg.norm((cam - block_c)[:2])
+        cyl_xy = block_c[:2] + 1.1 * towards  # on the line of sight to the block's centre
+        return [_table_part((1.05, 0.45, 0.4), (0.1, 0.1), block_c),
+                _table_part((0.22, 0.22, 1.0), (0.1, 1.0), (*cyl_xy, 1.0)),
+                _table_part((0.45, 0.45, 0.45), (1.0, 1.0), (1.45, 0.3, 0.45))]
+    raise ValueError(f"paper_scene: unknown scene {name!r}, expected one of {PAPER_SCENES}")
+
+
+def paper_scene(name: str, *, shape=(120, 160), noise: float = 0.0, seed: int = 0):
+    """One of the paper's scenes (`PAPER_SCENES`): (range image with labels, ground-truth superquadrics).
+
+    `sphere_cylinder` (Fig. 1), `two_cylinders` (Fig. 2, a cross) and `occluded_block` (Fig. 3: a box seen
+    as two pieces behind a vertical cylinder, and a sphere). Parts stand on a table about 5 units in front
+    of `default_camera(shape)`, seen obliquely; label i + 1 is part i.
+    """
+    parts = _paper_parts(name)
+    return render(parts, default_camera(shape), shape, noise=noise, seed=seed), parts
+
+
+# ----------------------------------------------------------------------------------------------------
+# random scenes
+
+
+def _random_rotation(rng) -> np.ndarray:
+    w, x, y, z = (q := rng.standard_normal(4)) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+class _Body:
+    """A candidate part: parameters, surface samples about its centre (grid + uniform by area), its radius."""
+
+    def __init__(self, rng):
+        self.size = rng.uniform(0.25, 0.6, 3)
+        self.epsilon = rng.uniform(0.1, 1.0, 2)
+        self.rotation = _random_rotation(rng)
+        sq = Superquadric.create(self.size, self.epsilon, rotation=self.rotation)
+        grid = surface_grid(sq, 24).reshape(-1, 3)  # dense at edges and corners
+        self.surface = np.concatenate([grid, sample_surface(sq, 1500, seed=int(rng.integers(2**31)))])
+        self.radius = float(np.linalg.norm(self.surface, axis=-1).max())
+        self.centre = np.zeros(3)
+
+    def log_F(self, centre, pts):
+        return _log_F_np(self.size, self.epsilon, self.rotation, centre, pts)
+
+    def at(self, c) -> Superquadric:
+        return Superquadric.create(self.size, self.epsilon, rotation=self.rotation, translation=c)
+
+
+def _overlap(a: _Body, ca, b: _Body, cb) -> bool:
+    if np.linalg.norm(np.subtract(ca, cb)) > a.radius + b.radius:
+        return False
+    return bool((b.log_F(cb, a.surface + ca) <= 0).any() or (a.log_F(ca, b.surface + cb) <= 0).any())
+
+
+def _contact(a: _Body, b: _Body, direction) -> float:
+    """Distance s along the unit `direction` from b's centre at which a (centred there) just touches b."""
+    lo, hi = 0.0, a.radius + b.radius
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _overlap(a, b.centre + mid * direction, b, b.centre) else (lo, mid)
+    return hi
+
+
+def _in_view(camera: PinholeCamera, shape, c, r) -> bool:
+    if not 3.8 <= c[2] <= 6.8 or c[2] - r < 2.5:
+        return False
+    h, w = shape
+    tx, ty = (min(camera.cx, w - 1 - camera.cx) - 2) / camera.fx, (min(camera.cy, h - 1 - camera.cy) - 2) / camera.fy
+    return abs(c[0]) + r <= tx * (c[2] - r) and abs(c[1]) + r <= ty * (c[2] - r)
+
+
+def _place(rng, body: _Body, placed: list[_Body], relation: str, camera, shape) -> bool:
+    """Try to centre `body` in `relation` to a random placed part (or anywhere); True when it fits."""
+    h, w = shape
+    for _ in range(60):
+        if not placed or relation == "separate":
+            z = rng.uniform(5.5, 6.5) if relation == "occluding" else rng.uniform(4.6, 6.3)
+            c = np.array([rng.uniform(-1, 1) * 0.45 * z * w / camera.fx,
+                          rng.uniform(-1, 1) * 0.45 * z * h / camera.fy, z])
+            if any(np.linalg.norm(c - p.centre) < body.radius + p.radius + 0.05 for p in placed):
+                continue
+        else:
+            j = placed[rng.integers(len(placed))]
+            if relation == "occluding":
+                view = j.centre / np.linalg.norm(j.centre)
+                u = np.cross(view, rng.standard_normal(3))
+                d = -view + rng.uniform(0.5, 1.0) * u / np.linalg.norm(u)
+            else:
+                d = rng.standard_normal(3) * (1.0, 1.0, 0.4)  # mostly side by side
+            d /= np.linalg.norm(d)
+            s = _contact(body, j, d)
+            s *= {"touching": 1.0, "intersecting": rng.uniform(0.55, 0.8)}.get(relation, 1.0)
+            s += rng.uniform(0.05, 0.3) if relation == "occluding" else 0.0
+            c = j.centre + s * d
+            if any(_overlap(body, c, p, p.centre) for p in placed if p is not j):
+                continue
+        if _in_view(camera, shape, c, body.radius):
+            body.centre = c
+            return True
+    return False
+
+
+def random_scene(seed: int, *, n_parts=(2, 6), shape=(120, 160), noise: float = 0.005, dropout: float = 0.0,
+                 arrangement: str = "mixed", min_pixels: int | None = None, max_tries: int = 200):
+    """A seeded random scene: (range image with labels, ground-truth superquadrics, label i + 1 = part i).
+
+    **Arguments:**
+    - `n_parts`: an int or an inclusive range (lo, hi) the count is drawn from.
+    - `arrangement`: how each new part sits against a random earlier one: "separate" (apart),
+      "touching", "intersecting", "occluding" (in front of it, partly covering it), or "mixed" (each
+      relation drawn at random).
+    - `min_pixels`: every part must be the nearest surface in at least this many pixels (before
+      dropout; default 150 at 160 x 120, scaled with the image area); scenes are redrawn until they
+      are (deterministically, from the same generator).
+
+    Sizes are drawn in [0.25, 0.6], exponents in [0.1, 1.0], rotations uniformly; parts lie 3.8 to 6.8
+    units in front of `default_camera(shape)` and inside its view.
+    """
+    if arrangement not in ARRANGEMENTS:
+        raise ValueError(f"random_scene: arrangement must be one of {ARRANGEMENTS}, got {arrangement!r}")
+    lo, hi = (n_parts, n_parts) if np.isscalar(n_parts) else n_parts
+    if not 1 <= lo <= hi:
+        raise ValueError(f"random_scene: n_parts must be >= 1 (or a range lo <= hi), got {n_parts}")
+    shape = tuple(int(s) for s in shape)
+    camera, rng = default_camera(shape), np.random.default_rng([seed, ARRANGEMENTS.index(arrangement)])
+    relations = ARRANGEMENTS[:4]
+    if min_pixels is None:
+        min_pixels = max(20, round(150 * shape[0] * shape[1] / (120 * 160)))
+    n = int(rng.integers(lo, hi + 1))
+    for _ in range(max_tries):
+        placed: list[_Body] = []
+        for _k in range(n):
+            rel = relations[rng.integers(4)] if arrangement == "mixed" else arrangement
+            body = _Body(rng)
+            if not _place(rng, body, placed, rel, camera, shape):
+                break
+            placed.append(body)
+        if len(placed) < n:
+            continue
+        parts = [b.at(b.centre) for b in placed]
+        meshes = _meshes(parts, 64)
+        _, labels, _, _ = _cast(meshes, camera, shape)
+        if np.bincount(labels, minlength=n + 1)[1:].min() >= min_pixels:
+            image = _render(parts, meshes, camera, shape, noise=noise, dropout=dropout,
+                            seed=int(rng.integers(2**31)))
+            return image, parts
+    raise RuntimeError(f"random_scene: no scene with every part visible in {max_tries} tries (seed {seed})")

@@ -1,0 +1,192 @@
+"""Synthetic range scenes: ray-cast geometry, noise and dropout, the paper's scenes, random scenes."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+
+from sqjax import Superquadric, contains, inside_outside, sample_surface
+from sqjax.rangeimage import OrthographicCamera, PinholeCamera
+from sqjax.scenes import ARRANGEMENTS, PAPER_SCENES, default_camera, paper_scene, random_scene, render
+
+SHAPE = (60, 80)
+
+
+def _components(mask) -> int:
+    """Number of 4-connected components of a boolean image (a small flood fill)."""
+    mask, seen, count = np.asarray(mask, bool), np.zeros(np.shape(mask), bool), 0
+    for start in zip(*np.nonzero(mask)):
+        if seen[start]:
+            continue
+        count, stack = count + 1, [start]
+        seen[start] = True
+        while stack:
+            r, c = stack.pop()
+            for rr, cc in ((r + 1, c), (r - 1, c), (r, c + 1), (r, c - 1)):
+                if 0 <= rr < mask.shape[0] and 0 <= cc < mask.shape[1] and mask[rr, cc] and not seen[rr, cc]:
+                    seen[rr, cc] = True
+                    stack.append((rr, cc))
+    return count
+
+
+_inside_outside, _contains = jax.jit(inside_outside), jax.jit(contains)
+
+
+def _padded(sq, points, n=4096):
+    """Points padded to a fixed count with the model centre (one compilation for every call)."""
+    out = np.broadcast_to(np.asarray(sq.translation, np.float32), (n, 3)).copy()
+    out[: len(points)] = points
+    return jnp.asarray(out)
+
+
+def _any_inside(sq, points) -> bool:
+    return bool(np.asarray(_contains(sq, _padded(sq, points)))[: len(points)].any())
+
+
+def _assert_on_surfaces(image, parts, tol=1e-3):
+    assert np.array_equal(image.valid, image.labels > 0)
+    points = image.points
+    for i, sq in enumerate(parts):
+        sel = image.labels == i + 1
+        assert sel.sum() > 20, f"part {i} barely visible"
+        F = np.asarray(_inside_outside(sq, _padded(sq, points[sel])))[: sel.sum()]
+        assert np.abs(F - 1.0).max() < tol, f"part {i}: max |F - 1| = {np.abs(F - 1).max()}"
+
+
+def _two_parts():
+    box = Superquadric.create((0.5, 0.35, 0.3), (0.1, 0.1), euler=(0.4, 0.9, 0.3), translation=(-0.5, 0.1, 5.0))
+    blob = Superquadric.create((0.4, 0.3, 0.5), (0.6, 1.0), euler=(1.0, 0.5, -0.2), translation=(0.6, -0.1, 5.5))
+    return [box, blob]
+
+
+def test_render_pinhole_points_on_surface():
+    parts = _two_parts()
+    image = render(parts, default_camera(SHAPE), SHAPE)
+    assert image.depth.shape == SHAPE and image.labels.dtype == np.int32
+    _assert_on_surfaces(image, parts)
+
+
+def test_render_orthographic_points_on_surface():
+    parts = _two_parts()
+    camera = OrthographicCamera(0.04, SHAPE[1] / 2, SHAPE[0] / 2)
+    image = render(parts, camera, SHAPE)
+    _assert_on_surfaces(image, parts)
+
+
+def test_render_depth_is_z_and_nearest_part_wins():
+    """A mesh box seen head-on: depth is the z of its front face (not the ray length); it hides a part behind."""
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    box.apply_translation((0.0, 0.0, 4.5))
+    behind = Superquadric.create((1.5, 1.5, 0.2), (1.0, 1.0), translation=(0.0, 0.0, 6.0))
+    camera = PinholeCamera(80.0, 80.0, 39.5, 29.5)
+    image = render([behind, box], camera, SHAPE)
+    front = image.labels == 2
+    assert front.sum() > 100
+    np.testing.assert_allclose(image.depth[front], 4.0, atol=1e-5)
+    u, v = camera.project(np.array([[0.5, 0.5, 4.0], [-0.5, -0.5, 4.0]]))[0].T
+    assert front[int(np.ceil(v[1])):int(v[0]), int(np.ceil(u[1])):int(u[0])].all()
+    assert (image.labels == 1).sum() > 100
+
+
+def test_noise_std_and_dropout_fraction():
+    parts = [Superquadric.create((1.2, 0.9, 0.5), (0.5, 0.5), translation=(0.0, 0.0, 5.0))]
+    camera = default_camera(SHAPE)
+    clean = render(parts, camera, SHAPE)
+    noisy = render(parts, camera, SHAPE, noise=0.01, seed=3)
+    assert np.array_equal(clean.valid, noisy.valid)
+    diff = (noisy.depth - clean.depth)[clean.valid]
+    assert diff.size > 1000
+    assert abs(diff.std() - 0.01) < 0.1 * 0.01 and abs(diff.mean()) < 0.002
+    np.testing.assert_array_equal(render(parts, camera, SHAPE, noise=0.01, seed=3).depth, noisy.depth)
+
+    dropped = render(parts, camera, SHAPE, dropout=0.25, seed=1)
+    n = clean.valid.sum()
+    assert dropped.valid.sum() == n - round(0.25 * n)
+    assert not (dropped.valid & ~clean.valid).any()
+    assert np.array_equal(dropped.valid, dropped.labels > 0)
+
+
+@pytest.mark.parametrize("name", PAPER_SCENES)
+def test_paper_scenes(name):
+    image, parts = paper_scene(name)
+    assert image.shape == (120, 160)
+    assert len(parts) == {"sphere_cylinder": 2, "two_cylinders": 2, "occluded_block": 3}[name]
+    counts = np.bincount(image.labels.ravel(), minlength=len(parts) + 1)
+    assert len(counts) == len(parts) + 1 and counts[1:].min() >= 300, counts
+    _assert_on_surfaces(image, parts)
+    if name == "occluded_block":
+        block = parts[0]
+        assert np.asarray(block.epsilon).max() <= 0.1 + 1e-6  # a box
+        assert _components(image.labels == 1) == 2
+        assert all(_components(image.labels == k) == 1 for k in (2, 3))
+    if name == "two_cylinders":
+        a, b = parts
+        assert _any_inside(a, sample_surface(b, 2000))  # they intersect
+
+
+def test_paper_scene_unknown_name():
+    with pytest.raises(ValueError, match="unknown scene"):
+        paper_scene("teapot")
+
+
+def test_random_scene_is_deterministic():
+    a, pa = random_scene(7, noise=0.005)
+    b, pb = random_scene(7, noise=0.005)
+    np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    assert len(pa) == len(pb) and 2 <= len(pa) <= 6
+    for p, q in zip(pa, pb):
+        np.testing.assert_array_equal(np.asarray(p.size), np.asarray(q.size))
+        np.testing.assert_array_equal(np.asarray(p.translation), np.asarray(q.translation))
+    c, _ = random_scene(8, noise=0.005)
+    assert c.labels.max() != a.labels.max() or not np.array_equal(c.labels, a.labels)
+
+
+@pytest.mark.parametrize("arrangement", ARRANGEMENTS)
+def test_random_scene_every_part_visible(arrangement):
+    image, parts = random_scene(1, n_parts=(3, 4), arrangement=arrangement, noise=0.0)
+    assert 3 <= len(parts) <= 4
+    counts = np.bincount(image.labels.ravel(), minlength=len(parts) + 1)
+    assert len(counts) == len(parts) + 1 and counts[1:].min() >= 150, counts
+    for sq in parts:
+        e = np.asarray(sq.epsilon)
+        assert ((0.1 <= e) & (e <= 1.0)).all()
+    _assert_on_surfaces(image, parts)
+    surf = [sample_surface(p, 2000) for p in parts]
+    hits = lambda i, j: _any_inside(parts[j], surf[i]) or _any_inside(parts[i], surf[j])  # noqa: E731
+    if arrangement == "separate":
+        assert not any(hits(i, j) for i in range(len(parts)) for j in range(i))
+    if arrangement == "intersecting":
+        assert all(any(hits(i, j) for j in range(i)) for i in range(1, len(parts)))
+
+
+def test_random_scene_arguments():
+    image, parts = random_scene(2, n_parts=2, shape=(90, 120), noise=0.0, dropout=0.1)
+    assert len(parts) == 2 and image.shape == (90, 120)
+    with pytest.raises(ValueError, match="arrangement"):
+        random_scene(0, arrangement="stacked")
+
+
+def test_render_without_embree_matches(monkeypatch):
+    """The pure numpy ray caster (used when embreex is missing) gives the same image."""
+    import sqjax.scenes as scenes
+    from trimesh.ray.ray_triangle import RayMeshIntersector
+
+    parts, shape = _two_parts(), (24, 32)
+    camera = default_camera(shape)
+    fast = render(parts, camera, shape, resolution=24)
+    monkeypatch.setattr(scenes, "_intersector", RayMeshIntersector)
+    slow = render(parts, camera, shape, resolution=24)
+    assert (fast.labels != slow.labels).sum() <= 2
+    same = (fast.labels == slow.labels) & fast.valid
+    np.testing.assert_allclose(fast.depth[same], slow.depth[same], atol=1e-5)
+
+
+def test_render_non_convex_part():
+    """A star-like superquadric (exponents > 1): hits still lie on its surface or, unbracketed, on its mesh."""
+    star = Superquadric.create((0.8, 0.8, 0.8), (1.8, 1.8), euler=(0.3, 0.4, 0.0), translation=(0.0, 0.0, 5.0))
+    image = render([star], default_camera(SHAPE), SHAPE)
+    assert image.valid.sum() > 100 and np.isfinite(image.depth[image.valid]).all()
+    F = np.asarray(_inside_outside(star, _padded(star, image.points[image.valid])))[: image.valid.sum()]
+    assert np.median(np.abs(F - 1)) < 1e-3 and np.abs(F - 1).max() < 0.2
