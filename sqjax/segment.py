@@ -34,6 +34,9 @@ class SegmentOptions:
     - `window`, `stride`: seed windows in pixels (None = from the image size); clouds: `window` points.
     - `min_seed_points`: fewest valid points in a seed window (2x the 11 parameters).
     - `enlarge`: growth factor on a1..a3; `rings`: image-adjacent rings searched per growth step.
+    - `admit_factor`: candidates within `admit_factor * tau` of the current model are tried; after the
+      refit only points within tau stay, and the step is kept if at least `keep_fraction` of them do.
+      (Lets a model turn a box edge, where the next face starts off the current surface.)
     - `select_every`: growth steps between selections; `max_steps`: cap on growth steps.
     - `max_points`: a region is subsampled to at most this many points for its refit.
     - `weights`: K1, K2, K3 (None = `SelectionWeights.for_threshold(tau)`); `selector`: "greedy" (the
@@ -49,6 +52,7 @@ class SegmentOptions:
     min_seed_points: int = 2 * NUM_PARAMS
     seed_inlier_fraction: float = 0.9
     enlarge: float = 1.15
+    admit_factor: float = 3.0
     rings: int = 2
     keep_fraction: float = 0.9
     select_every: int = 3
@@ -220,9 +224,10 @@ class _Models:
     def __init__(self, theta, regions, dist, inside):
         self.theta, self.regions, self.dist, self.inside = theta, regions, dist, inside
         self.active = np.ones(len(theta), bool)
+        self.loose = np.ones(len(theta), bool)     # admission at admit_factor * tau (else tau)
 
     def take(self, keep):
-        for name in ("theta", "regions", "dist", "inside", "active"):
+        for name in ("theta", "regions", "dist", "inside", "active", "loose"):
             setattr(self, name, getattr(self, name)[keep])
 
 
@@ -319,7 +324,8 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
         return
     R = models.regions[act]
     cand = _dilate(R, run.dom.neighbours, opts.rings) & ~R
-    admit = cand & models.inside[act] & (models.dist[act] < run.tau)
+    factor = np.where(models.loose[act], opts.admit_factor, 1.0)[:, None]
+    admit = cand & models.inside[act] & (models.dist[act] < factor * run.tau)
     grown = R | admit
     has_new = admit.any(1)
     theta = models.theta[act].copy()
@@ -334,6 +340,9 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
             if ok and region.sum() > R[i].sum():
                 models.theta[m], models.regions[m], models.dist[m], models.inside[m] = (new_theta[k], region,
                                                                                        new_d[k], new_in[k])
+                models.loose[m] = True
+            elif models.loose[m]:
+                models.loose[m] = False             # retry with only the points within tau
             else:
                 models.active[m] = False            # fit broke down or no growth: keep the last good state
     models.active[act[~has_new]] = False
@@ -436,7 +445,7 @@ def _domain(data, opts: SegmentOptions, k: int):
         H, W = data.shape
         window = opts.window or int(np.clip(round(min(H, W) / 12), 4, 32))
         window = min(window, H, W)
-        stride = opts.stride or window
+        stride = opts.stride or max(window // 2, 1)
         return _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points), noise, tau
     pts = np.asarray(data, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
