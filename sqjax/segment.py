@@ -19,6 +19,7 @@ import numpy as np
 from .fitting import FitOptions, bucket, fit_padded, to_superquadric
 from .rangeimage import RangeImage
 from .selection import SelectionWeights, build_q, select
+from . import rotation as so3
 from .superquadric import Superquadric, contains, distance
 
 NUM_PARAMS = 11
@@ -31,6 +32,8 @@ class SegmentOptions:
 
     - `noise`: sensor noise std; None = estimated from the data (`estimate_noise`).
     - `threshold`: admission distance tau (eq. 10); None = `threshold_factor * noise`.
+    - `adaptive_noise`: when the noise is estimated, raise it to the typical residual of the seed fits
+      (real surfaces are not exact superquadrics).
     - `window`, `stride`: seed windows in pixels (None = from the image size); clouds: `window` points.
     - `min_seed_points`: fewest valid points in a seed window (2x the 11 parameters).
     - `enlarge`: growth factor on a1..a3; `rings`: image-adjacent rings searched per growth step.
@@ -47,6 +50,7 @@ class SegmentOptions:
     noise: float | None = None
     threshold: float | None = None
     threshold_factor: float = 3.0
+    adaptive_noise: bool = True
     window: int | None = None
     stride: int | None = None
     min_seed_points: int = 2 * NUM_PARAMS
@@ -58,8 +62,7 @@ class SegmentOptions:
     select_every: int = 3
     max_steps: int = 60
     max_points: int = 512
-    fit_steps: int = 8
-    seed_fit_steps: int = 15
+    fit_steps: int = 10
     weights: SelectionWeights | None = None
     selector: str = "greedy"
     merge: bool = True
@@ -232,8 +235,8 @@ class _Models:
 
 
 class _Runner:
-    def __init__(self, dom: _Domain, opts: SegmentOptions, tau: float, dtype):
-        self.dom, self.opts, self.tau, self.dtype = dom, opts, tau, dtype
+    def __init__(self, dom: _Domain, opts: SegmentOptions, noise: float, tau: float, dtype):
+        self.dom, self.opts, self.noise, self.tau, self.dtype = dom, opts, noise, tau, dtype
         Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
         self.centre = dom.points.mean(0)
         self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
@@ -241,26 +244,32 @@ class _Runner:
         self.P = dom.points.shape[0]
         self.margin = 2.0 * tau
 
+    def set_noise(self, noise):
+        self.noise, self.tau = noise, self.opts.threshold_factor * noise
+        self.margin = 2.0 * self.tau
+
     def distances(self, theta):
         """(K, 11) -> eq. 10 distances (K, P) and inside-the-enlarged-model (K, P), in fixed-size chunks."""
         K = theta.shape[0]
         ds, ins = [], []
         for s in range(0, K, _CHUNK):
             th = _pad_rows(theta[s : s + _CHUNK], _CHUNK, theta[s])
-            d, inside = _distances(jnp.asarray(th, self.dtype), self.points, self.opts.enlarge, self.margin)
+            d, inside = _distances(jnp.asarray(th, self.dtype), self.points,
+                                   jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
             ds.append(np.asarray(d)[:, : self.P])
             ins.append(np.asarray(inside)[:, : self.P])
         return np.concatenate(ds)[:K].astype(np.float64), np.concatenate(ins)[:K]
 
-    def fit(self, regions, theta0, steps, multistart=False):
-        """Fit each region (index array, subsampled to max_points); theta0 (K, 11) warm starts or None.
+    def fit(self, regions, theta0, steps):
+        """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
+        fitter's own multistart (moment axes + EMS switches) when theta0 is None.
 
-        Calls the kernel on fixed (chunk, bucket) shapes: one compilation serves every growth step.
+        Calls the kernel on fixed (chunk, max_points) shapes: one compilation serves every step.
         """
         K = len(regions)
         cap = self.opts.max_points
-        N = bucket(max(min(r.size, cap) for r in regions), 32) if multistart else bucket(cap, 32)
-        opts = FitOptions(max_steps=steps, multistart=multistart)
+        N = bucket(cap, 32)
+        opts = FitOptions(max_steps=steps, multistart=theta0 is None)
         out = []
         for s in range(0, K, _CHUNK):
             pts = np.zeros((_CHUNK, N, 3))
@@ -270,7 +279,8 @@ class _Runner:
                 if r.size > cap:
                     r = r[np.linspace(0, r.size - 1, cap).astype(np.int64)]
                 pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
-            th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0[s : s + _CHUNK], _CHUNK, theta0[s]), self.dtype)
+            th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0[s : s + _CHUNK], _CHUNK, theta0[s]),
+                                                          self.dtype)
             theta, _, _, _ = fit_padded(jnp.asarray(pts, self.dtype), jnp.asarray(msk), th0, opts)
             out.append(np.asarray(theta))
         theta = np.concatenate(out)[:K].astype(np.float64)
@@ -297,17 +307,74 @@ def _select(models: _Models, tau, opts, weights):
     return m, stats
 
 
+def _starts(points: np.ndarray, regions: list) -> np.ndarray:
+    """Starting models (C=3, K, 11) for point sets given as index arrays: the moment ellipsoid of
+    Solina & Bajcsy, and a thick ellipsoid and box.
+
+    Axes from the central second moments (z = the direction of least spread, the surface normal of a
+    patch), half-sizes from the extents, the thickness floored at half the mean lateral half-size.
+    The floor matters: on a nearly planar patch the size-weighted cost (eq. 7) is smallest for a
+    slab as thin as the noise, which explains the points badly; a thick start finds the solid.
+    """
+    K = len(regions)
+    R = np.zeros((K, 3, 3))
+    centre, half, thin = np.zeros((K, 3)), np.zeros((K, 3)), np.zeros((K, 3))
+    for i, ids in enumerate(regions):
+        q = points[ids]
+        c = q.mean(0)
+        _, V = np.linalg.eigh(np.cov((q - c).T))
+        V = V[:, ::-1].copy()                       # largest spread first; z = least
+        V[:, 2] *= np.sign(np.linalg.det(V))
+        loc = (q - c) @ V
+        lo, hi = loc.min(0), loc.max(0)
+        h = np.maximum((hi - lo) / 2, 1e-9)
+        thin[i] = h
+        h = h.copy()
+        h[2] = max(h[2], 0.25 * (h[0] + h[1]))
+        R[i], centre[i], half[i] = V, c + V @ ((lo + hi) / 2), h
+    w = np.asarray(so3.log(jnp.asarray(R)), np.float64)
+    out = [np.concatenate([np.log(np.maximum(thin, 1e-3 * thin.max(1, keepdims=True))), np.ones((K, 2)), w, centre], 1)]
+    for e in (1.0, 0.3):
+        out.append(np.concatenate([np.log(half), np.full((K, 2), e), w, centre], 1))
+    return np.stack(out)
+
+
+def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False):
+    """Fit every region from each start of `_starts` (and the fitter's multistart if asked); keep, per region, the start whose fit explains
+    most of the region's points within tau (eq. 10). Returns theta (K, 11), distances, inside flags."""
+    best = None
+    starts = list(_starts(run.host_points, regions)) + ([None] if multistart else [])
+    for th0 in starts:
+        theta = run.fit(regions, th0, steps)
+        ok = np.isfinite(theta).all(1)
+        theta = np.where(ok[:, None], theta, 0.0)
+        d, inside = run.distances(theta)
+        score = np.array([np.mean(d[i, r] < run.tau) - 1e-3 * np.sqrt(np.mean(np.minimum(d[i, r], 1e3) ** 2))
+                          / run.tau if ok[i] else -np.inf for i, r in enumerate(regions)])
+        if best is None:
+            best = [theta, d, inside, score]
+        else:
+            better = score > best[3]
+            for j, new in enumerate((theta, d, inside, score)):
+                best[j] = np.where(better.reshape((-1,) + (1,) * (new.ndim - 1)), new, best[j])
+    return best[0], best[1], best[2], best[3]
+
+
 def _seed(run: _Runner, opts: SegmentOptions):
     dom = run.dom
     if not dom.seeds:
         return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), np.zeros((0, run.P)),
                        np.zeros((0, run.P), bool))
-    theta = run.fit(dom.seeds, None, opts.seed_fit_steps, multistart=True)
-    ok = np.isfinite(theta).all(1)
-    theta = np.where(ok[:, None], theta, 0.0)
-    d, inside = run.distances(theta)
+    theta, d, inside, score = _fit_best(run, dom.seeds, opts.fit_steps)
+    if opts.adaptive_noise and opts.noise is None and opts.threshold is None:
+        # Real surfaces are not exact superquadrics: take the noise as at least the typical residual
+        # of the seed fits (robust: median over seeds of the median absolute distance / 0.6745).
+        per_seed = [np.median(d[i, ids]) / 0.6745 for i, ids in enumerate(dom.seeds) if np.isfinite(score[i])]
+        if per_seed:
+            run.set_noise(max(run.noise, float(np.median(per_seed))))
+            d, inside = run.distances(theta)
     regions = np.zeros((len(dom.seeds), run.P), bool)
-    keep = ok.copy()
+    keep = np.isfinite(score)
     for i, ids in enumerate(dom.seeds):
         inl = d[i, ids] < run.tau
         keep[i] &= inl.mean() >= opts.seed_inlier_fraction      # statistically consistent with the noise
@@ -355,10 +422,8 @@ def _merge(run: _Runner, models: _Models, opts):
     if not pairs:
         return models
     regions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
-    theta = run.fit(regions, None, opts.seed_fit_steps, multistart=True)
-    ok = np.isfinite(theta).all(1)
-    theta = np.where(ok[:, None], theta, 0.0)
-    d, inside = run.distances(theta)
+    theta, d, inside, score = _fit_best(run, regions, opts.fit_steps, multistart=True)
+    ok = np.isfinite(score)
     union = np.stack([models.regions[i] | models.regions[j] for i, j in pairs])
     reg = union & (d < run.tau)
     good = ok & (reg.sum(1) >= opts.keep_fraction * union.sum(1))
@@ -395,9 +460,10 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     if True:
         dom, noise, tau = _domain(data, opts, k)
         dtype = jnp.float32
-        run = _Runner(dom, opts, tau, dtype)
-        weights = opts.weights or SelectionWeights.for_threshold(tau)
+        run = _Runner(dom, opts, noise, tau, dtype)
         models = _seed(run, opts)
+        noise, tau = run.noise, run.tau
+        weights = opts.weights or SelectionWeights.for_threshold(tau)
         history, stats = [], {"seeds": len(dom.seeds), "seed_models": len(models.theta), "selections": 0,
                               "greedy_worse": 0, "growth_steps": 0}
         step = 0
