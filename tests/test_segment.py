@@ -1,0 +1,93 @@
+"""Recover-and-select on the paper's scenes, clouds and degenerate inputs."""
+
+import numpy as np
+import pytest
+
+import sqjax
+from sqjax import PinholeCamera, RangeImage, hoover, paper_scene, segment
+
+
+@pytest.fixture(scope="module", params=["sphere_cylinder", "two_cylinders", "occluded_block"])
+def paper_result(request):
+    image, truth = paper_scene(request.param, noise=0.002)
+    return request.param, image, truth, segment(image)
+
+
+def test_paper_scenes_right_parts_and_hoover_correct(paper_result):
+    """The paper's Figures 1-3: every part found once, each a correct detection at T = 0.8
+    (the occluded block, which the image shows in two pieces, as one part)."""
+    name, image, truth, seg = paper_result
+    score = hoover(image.labels, seg.labels, tolerance=0.8)
+    assert len(seg.parts) == len(truth), name
+    assert score.correct == len(truth), (name, score.to_dict())
+    assert score.over == score.under == score.missed == score.noise == 0
+
+
+def test_paper_scene_models_are_finite_and_consistent(paper_result):
+    name, image, truth, seg = paper_result
+    assert seg.labels.shape == image.shape and seg.labels.dtype == np.int32
+    assert set(np.unique(seg.labels)) <= set(range(len(seg.parts) + 1))
+    assert not np.any(seg.labels[~image.valid])
+    for i, part in enumerate(seg.parts):
+        for leaf in (part.superquadric.size, part.superquadric.epsilon, part.superquadric.rotation,
+                     part.superquadric.translation):
+            assert np.isfinite(np.asarray(leaf)).all()
+        assert part.num_points == part.region.size > 0
+        assert np.all(seg.labels.ravel()[part.region] >= 1)
+        assert np.isfinite(part.error) and part.error <= part.num_points * seg.threshold**2
+    # the history holds the models after each selection and ends with the final ones
+    assert len(seg.history) >= 2 and len(seg.history[-1]) == len(seg.parts)
+    assert set(seg.timings) >= {"total", "compile", "run"} and seg.timings["run"] >= 0
+    d = seg.to_dict()
+    assert len(d["parts"]) == len(seg.parts) and {"size", "epsilon", "rotation", "translation"} <= set(d["parts"][0])
+
+
+def test_parts_explain_the_truth_volumes(paper_result):
+    """Each found part overlaps its true superquadric (volume IoU) reasonably: one view only."""
+    name, image, truth, seg = paper_result
+    score = hoover(image.labels, seg.labels)
+    for t, f in score.correct_pairs:
+        iou = sqjax.volume_iou(truth[t - 1], seg.parts[f - 1].superquadric, n=20_000)
+        assert iou > 0.3, (name, t, iou)
+
+
+def test_deterministic():
+    image, _ = paper_scene("sphere_cylinder", noise=0.002)
+    a, b = segment(image), segment(image)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    for p, q in zip(a.parts, b.parts):
+        np.testing.assert_array_equal(np.asarray(p.superquadric.size), np.asarray(q.superquadric.size))
+
+
+def test_flat_plane_is_one_part():
+    d = np.full((60, 80), 5.0)
+    seg = segment(RangeImage(d, PinholeCamera(100, 100, 40, 30)))
+    assert len(seg.parts) == 1 and (seg.labels > 0).mean() > 0.95
+
+
+def test_unorganised_cloud_with_knn_adjacency():
+    a = sqjax.Superquadric.create([1, 1, 1])
+    b = sqjax.Superquadric.create([1, 0.5, 0.7], [0.3, 0.3], translation=[4, 0, 0])
+    pts = np.concatenate([sqjax.sample_surface(a, 1500, seed=1, noise=0.005),
+                          sqjax.sample_surface(b, 1500, seed=2, noise=0.005)])
+    seg = segment(pts)
+    assert len(seg.parts) == 2 and seg.labels.shape == (3000,)
+    la, lb = np.bincount(seg.labels[:1500]).argmax(), np.bincount(seg.labels[1500:]).argmax()
+    assert la != lb and la > 0 and lb > 0
+    assert (seg.labels[:1500] == la).mean() > 0.95 and (seg.labels[1500:] == lb).mean() > 0.95
+
+
+@pytest.mark.parametrize("depth, message", [
+    (np.full((30, 40), np.nan), "no valid pixel"),
+    (np.zeros((30, 40)), "no valid pixel"),
+    (np.where(np.arange(1200).reshape(30, 40) == 7, 5.0, np.nan), "1 valid pixels"),
+    (np.full((3, 3), 5.0), "9 valid pixels"),
+])
+def test_degenerate_images_get_a_clear_error(depth, message):
+    with pytest.raises(ValueError, match=message):
+        segment(RangeImage(depth, PinholeCamera(50, 50, 20, 15)))
+
+
+def test_bad_input_type():
+    with pytest.raises(ValueError, match="RangeImage or an"):
+        segment(np.zeros((5, 4)))
