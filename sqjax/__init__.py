@@ -3,6 +3,7 @@
 from importlib.metadata import PackageNotFoundError, version
 
 from . import evaluate as evaluate
+from . import plot as plot
 from . import rotation as rotation
 from . import scenes as scenes
 from .evaluate import HooverScore as HooverScore
@@ -11,6 +12,13 @@ from .evaluate import hoover as hoover
 from .evaluate import parameter_errors as parameter_errors
 from .evaluate import volume_iou as volume_iou
 from .evaluate import volume_iou_batch as volume_iou_batch
+from .export import label_colors as label_colors
+from .export import labels_to_png as labels_to_png
+from .export import parts_to_scene as parts_to_scene
+from .export import write_segmentation as write_segmentation
+from .fitting import Fit as Fit
+from .fitting import FitOptions as FitOptions
+from .fitting import fit as fit
 from .formats import read_points as read_points
 from .formats import read_range_image as read_range_image
 from .formats import write_points as write_points
@@ -18,6 +26,7 @@ from .formats import write_range_image as write_range_image
 from .rangeimage import OrthographicCamera as OrthographicCamera
 from .rangeimage import PinholeCamera as PinholeCamera
 from .rangeimage import RangeImage as RangeImage
+from .plot import figure_sequence as figure_sequence
 from .scenes import paper_scene as paper_scene
 from .scenes import random_scene as random_scene
 from .scenes import render as render

@@ -332,11 +332,14 @@ def _starts(points: np.ndarray, regions: list) -> np.ndarray:
         h = h.copy()
         h[2] = max(h[2], 0.25 * (h[0] + h[1]))
         R[i], centre[i], half[i] = V, c + V @ ((lo + hi) / 2), h
-    w = np.asarray(so3.log(jnp.asarray(R)), np.float64)
+    w = np.asarray(_log_rotations(jnp.asarray(_pad_rows(R, bucket(K, 32), np.eye(3)))), np.float64)[:K]
     out = [np.concatenate([np.log(np.maximum(thin, 1e-3 * thin.max(1, keepdims=True))), np.ones((K, 2)), w, centre], 1)]
     for e in (1.0, 0.3):
         out.append(np.concatenate([np.log(half), np.full((K, 2), e), w, centre], 1))
     return np.stack(out)
+
+
+_log_rotations = jax.jit(so3.log)
 
 
 def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False):
@@ -490,8 +493,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
             history.append(models.theta.copy())
         parts, labels = _finish(run, models)
-        history = [_unbatch(_world(jnp.asarray(h, jnp.float32), jnp.asarray(run.centre, jnp.float32))) if len(h)
-                   else [] for h in history]
+        history = [_to_world(h, run.centre) for h in history]
     total = time.perf_counter() - t_start
     compile_s = _COMPILE_SECONDS[0] - compile_start
     timings = {"total": total, "compile": compile_s, "run": total - compile_s}
@@ -532,17 +534,28 @@ def _finish(run: _Runner, models: _Models):
     models.take(order)
     flat = np.zeros(int(np.prod(run.dom.shape)), np.int32)
     if len(models.theta):
+        # each pixel to its nearest model; near-ties (within the noise) go to the larger part, so two
+        # almost coincident surfaces do not leave a speckle decided by noise
         d = np.where(models.regions, models.dist, np.inf)
-        best = np.argmin(d, 0)
+        near = d <= d.min(0) + run.noise
+        best = np.argmax(near, 0)                       # models are sorted largest first
         has = np.isfinite(d.min(0))
         flat[run.dom.index[has]] = best[has] + 1
     parts = []
-    sqs = _unbatch(_world(jnp.asarray(models.theta, jnp.float32), jnp.asarray(run.centre, jnp.float32))) if len(
-        models.theta) else []
+    sqs = _to_world(models.theta, run.centre)
     for i, sq in enumerate(sqs):
         reg = np.flatnonzero(models.regions[i])
         parts.append(Part(sq, run.dom.index[reg], float(np.sum(models.dist[i, reg] ** 2)), int(reg.size)))
     return parts, flat.reshape(run.dom.shape)
+
+
+def _to_world(theta, centre) -> list:
+    """(M, 11) centred parameters -> list of M `Superquadric`s (padded so few shapes compile)."""
+    M = len(theta)
+    if M == 0:
+        return []
+    th = jnp.asarray(_pad_rows(theta, bucket(M, 8), theta[0]), jnp.float32)
+    return _unbatch(_world(th, jnp.asarray(centre, jnp.float32)))[:M]
 
 
 def _unbatch(sq: Superquadric) -> list:

@@ -1,0 +1,298 @@
+"""The command line end to end on small inputs: outputs parsed back, help texts, one-line errors.
+
+Commands run in-process through `sqjax.cli.main` (the JIT cache is shared between tests) on a
+60 x 80 rendering of the paper's Fig. 3 scene; one subprocess checks `python -m sqjax --help`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from sqjax.cli import _Progress, main
+from sqjax.export import label_colors
+from sqjax.formats import read_range_image, write_points, write_range_image
+from sqjax.segment import segment
+
+SHAPE = (60, 80)
+
+
+def run(capsys, *argv):
+    """main(argv) -> (exit status, stdout, stderr)."""
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code, err):
+    assert code != 0
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("sqjax: error: "), err
+    assert "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    path = tmp_path_factory.mktemp("scene") / "scene.npz"
+    assert main(["render", "occluded_block", "--shape", "60,80", "--noise", "0.002", "--out", str(path)]) == 0
+    return path
+
+
+@pytest.fixture(scope="module")
+def segmented(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("seg") / "result"
+    assert main(["segment", str(scene), "--out", str(out), "-q"]) == 0
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# help
+
+
+@pytest.mark.parametrize("command", [[], ["segment"], ["demo"], ["render"], ["evaluate"], ["fit"]])
+def test_help(capsys, command):
+    code, out, err = run(capsys, *command, "--help")
+    assert code == 0
+    assert out.startswith("usage: sqjax") and "--help" in out
+    assert err == ""
+
+
+def test_python_m_sqjax_help():
+    proc = subprocess.run([sys.executable, "-m", "sqjax", "--help"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    for cmd in ("segment", "demo", "render", "evaluate", "fit"):
+        assert cmd in proc.stdout
+
+
+def test_no_command_is_a_usage_error(capsys):
+    code, _, err = run(capsys)
+    assert_one_line_error(code, err)
+
+
+# ----------------------------------------------------------------------------------------------------
+# render
+
+
+def test_render_npz(scene):
+    image = read_range_image(scene)
+    assert image.shape == SHAPE
+    assert image.labels is not None and set(np.unique(image.labels)) == {0, 1, 2, 3}
+    assert image.camera.to_dict()["model"] == "pinhole"
+
+
+def test_render_random_scene_with_truth_json(capsys, tmp_path):
+    out, truth = tmp_path / "r.pcd", tmp_path / "truth.json"
+    code, stdout, _ = run(capsys, "render", "random:1", "--shape", "40,56", "--out", out, "--json", truth)
+    assert code == 0 and "wrote" in stdout
+    image = read_range_image(out)
+    assert image.shape == (40, 56) and image.labels.max() >= 1
+    doc = json.loads(truth.read_text())
+    assert len(doc["parts"]) == image.labels.max()
+    assert {"size", "epsilon", "rotation", "euler_zyz", "translation"} <= doc["parts"][0].keys()
+
+
+# ----------------------------------------------------------------------------------------------------
+# segment
+
+
+def test_segment_outputs(segmented, scene):
+    doc = json.loads((segmented / "models.json").read_text())
+    assert doc["version"] == 1
+    assert doc["input"]["kind"] == "range_image" and doc["input"]["shape"] == list(SHAPE)
+    assert doc["image_size"] == list(SHAPE)
+    assert doc["camera"]["model"] == "pinhole" and isinstance(doc["camera"]["fx"], float)
+    assert isinstance(doc["settings"], dict) and doc["settings"]["subsample"] == 1
+    assert {"total", "compile", "run"} <= doc["timings"].keys()
+    assert isinstance(doc["noise"], float) and isinstance(doc["threshold"], float)
+    assert len(doc["parts"]) >= 1
+    for i, part in enumerate(doc["parts"]):
+        assert part["label"] == i + 1
+        assert len(part["size"]) == 3 and all(isinstance(v, float) and v > 0 for v in part["size"])
+        assert len(part["epsilon"]) == 2
+        R = np.asarray(part["rotation"])
+        assert R.shape == (3, 3) and np.allclose(R.T @ R, np.eye(3), atol=1e-4)
+        assert len(part["euler_zyz"]) == 3 and len(part["translation"]) == 3
+        assert isinstance(part["num_points"], int) and part["num_points"] > 0
+        assert isinstance(part["error"], float) and part["error"] >= 0
+        assert part["color"] == label_colors(len(doc["parts"]))[i].tolist()
+
+    labels = np.load(segmented / "labels.npy")
+    assert labels.dtype == np.int32 and labels.shape == SHAPE
+    assert labels.max() == len(doc["parts"])
+    # the same segmentation in-process gives the same labels (and the run is deterministic)
+    again = segment(read_range_image(scene))
+    np.testing.assert_array_equal(labels, again.labels)
+
+    with Image.open(segmented / "labels.png") as im:
+        assert im.size == (SHAPE[1], SHAPE[0]) and im.mode == "RGB"
+        rgb = np.asarray(im)
+    for k in range(1, labels.max() + 1):
+        assert (rgb[labels == k] == label_colors(labels.max())[k - 1]).all()
+
+    scene_glb = trimesh.load(segmented / "parts.glb")
+    assert isinstance(scene_glb, trimesh.Scene) and len(scene_glb.geometry) == len(doc["parts"])
+    assert all(len(g.faces) > 0 for g in scene_glb.geometry.values())
+    mesh = trimesh.load(segmented / "parts.ply")
+    assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) > 0 and mesh.visual.kind == "vertex"
+
+    with Image.open(segmented / "figure.png") as im:
+        assert im.format == "PNG" and im.size[0] > 600
+
+
+def test_segment_png_with_camera_subsample_and_evaluate(capsys, scene, tmp_path):
+    image = read_range_image(scene)
+    png = tmp_path / "depth.png"
+    write_range_image(png, image, depth_scale=1e-3)
+    cam = ",".join(f"{v:g}" for v in (image.camera.fx, image.camera.fy, image.camera.cx, image.camera.cy))
+    out = tmp_path / "res"
+    code, stdout, err = run(capsys, "segment", png, "--camera", cam, "--depth-scale", "0.001", "--subsample", "2",
+                            "--no-figure", "--out", out, "-o", "max_steps=30")
+    assert code == 0, err
+    assert err == ""                       # no progress bar when stderr is not a terminal
+    assert "labels.png" in stdout and "figure.png" not in stdout
+    doc = json.loads((out / "models.json").read_text())
+    assert doc["image_size"] == [30, 40] and doc["input"]["shape"] == list(SHAPE)
+    assert doc["settings"]["camera_source"] == "--camera" and doc["settings"]["options"]["max_steps"] == 30
+    assert np.load(out / "labels.npy").shape == (30, 40)
+    # evaluate applies the recorded subsampling to the full-size truth
+    code, stdout, err = run(capsys, "evaluate", out, scene, "--json", tmp_path / "score.json")
+    assert code == 0, err and "correct" in stdout
+    score = json.loads((tmp_path / "score.json").read_text())
+    assert score["subsample"] == 2 and score["n_truth"] == 3 and score["tolerance"] == 0.8
+
+
+def test_segment_point_cloud(capsys, scene, tmp_path):
+    image = read_range_image(scene)
+    pts = image.points[image.valid]
+    ply = tmp_path / "cloud.ply"
+    write_points(ply, pts)
+    out = tmp_path / "res"
+    # window=30: seed fits share the compiled kernel (32-point bucket) of the range-image tests
+    code, stdout, err = run(capsys, "segment", ply, "--out", out, "-o", "window=30")
+    assert code == 0, err
+    doc = json.loads((out / "models.json").read_text())
+    assert doc["input"]["kind"] == "point_cloud" and doc["image_size"] is None and doc["camera"] is None
+    labels = np.load(out / "labels.npy")
+    assert labels.shape == (len(pts),) and labels.max() == len(doc["parts"])
+    cloud = trimesh.load(out / "labels.ply")
+    assert len(cloud.vertices) == len(pts)
+    assert (out / "figure.png").exists() and (out / "parts.glb").exists()
+
+
+# ----------------------------------------------------------------------------------------------------
+# demo, evaluate, fit
+
+
+def test_demo_small(capsys, tmp_path):
+    out = tmp_path / "demo"
+    code, stdout, err = run(capsys, "demo", "--out", out, "--shape", "60,80", "--no-figure")
+    assert code == 0, err
+    for name in ("scene.npz", "models.json", "labels.npy", "labels.png", "parts.glb", "parts.ply"):
+        assert (out / name).exists(), name
+    assert "Hoover" in stdout and "wrote" in stdout
+
+
+def test_evaluate_truth_against_itself(capsys, scene, segmented, tmp_path):
+    truth = read_range_image(scene).labels
+    np.save(tmp_path / "labels.npy", truth)
+    code, stdout, _ = run(capsys, "evaluate", tmp_path / "labels.npy", scene, "--tolerance", "0.9")
+    assert code == 0 and "correct     3" in stdout
+    code, stdout, err = run(capsys, "evaluate", segmented / "labels.npy", scene)
+    assert code == 0, err and "noise" in stdout
+
+
+@pytest.mark.parametrize("ext", [".ply", ".xyz", ".npy"])
+def test_fit(capsys, tmp_path, ext):
+    from sqjax.superquadric import Superquadric, sample_surface
+
+    truth = Superquadric.create((0.5, 0.3, 0.2), (0.4, 0.9), euler=(0.3, 0.6, 0.1), translation=(0.1, -0.2, 3.0))
+    pts = sample_surface(truth, 400, noise=0.002, seed=1)
+    path = tmp_path / f"points{ext}"
+    write_points(path, pts)
+    code, stdout, err = run(capsys, "fit", path, "--json", tmp_path / "fit.json")
+    assert code == 0, err
+    assert "size a1 a2 a3" in stdout and "Euler" in stdout
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert {"version", "size", "epsilon", "rotation", "euler_zyz", "translation", "cost", "num_points",
+            "converged", "rms_distance"} <= doc.keys()
+    assert doc["num_points"] == 400 and isinstance(doc["cost"], float)
+    np.testing.assert_allclose(sorted(doc["size"]), [0.2, 0.3, 0.5], rtol=0.1)
+    np.testing.assert_allclose(doc["translation"], [0.1, -0.2, 3.0], atol=0.03)
+    assert np.asarray(doc["rotation"]).shape == (3, 3)
+
+
+# ----------------------------------------------------------------------------------------------------
+# errors: one line on stderr, status != 0, never a traceback
+
+
+def _few_points(tmp_path):
+    p = tmp_path / "few.xyz"
+    p.write_text("0 0 1\n0 1 1\n1 0 1\n1 1 2\n0.5 0.5 1.5\n")
+    return p
+
+
+def _garbage(tmp_path, name):
+    p = tmp_path / name
+    p.write_bytes(b"\x00\x01 this is not a valid file \xff" * 10)
+    return p
+
+
+ERROR_CASES = {
+    "missing file": lambda t: ["segment", t / "missing.npz"],
+    "bad extension": lambda t: ["segment", _garbage(t, "scene.foo")],
+    "corrupt npz": lambda t: ["segment", _garbage(t, "broken.npz")],
+    "corrupt ply": lambda t: ["fit", _garbage(t, "broken.ply")],
+    "corrupt pcd": lambda t: ["segment", _garbage(t, "broken.pcd")],
+    "bad camera": lambda t: ["segment", t / "x.png", "--camera", "1,2,three"],
+    "negative camera": lambda t: ["segment", t / "x.png", "--camera=-1,1,2,3"],
+    "png without camera": lambda t: ["segment", _garbage(t, "depth.png")],
+    "too few points to fit": lambda t: ["fit", _few_points(t)],
+    "too few points to segment": lambda t: ["segment", _few_points(t)],
+    "bad option": lambda t: ["segment", _few_points(t), "-o", "nonsense=1"],
+    "unknown scene": lambda t: ["render", "nonsense", "--out", t / "x.npz"],
+    "render bad extension": lambda t: ["render", "sphere_cylinder", "--out", t / "x.ply"],
+    "evaluate missing result": lambda t: ["evaluate", t / "nowhere", t / "truth.npz"],
+    "bad tolerance": lambda t: ["evaluate", t, t, "--tolerance", "2"],
+    "unknown command": lambda t: ["explode"],
+}
+
+
+@pytest.mark.parametrize("case", ERROR_CASES)
+def test_errors_are_one_line(capsys, tmp_path, case):
+    code, _, err = run(capsys, *ERROR_CASES[case](tmp_path))
+    assert_one_line_error(code, err)
+
+
+def test_evaluate_shape_mismatch(capsys, scene, tmp_path):
+    np.save(tmp_path / "labels.npy", np.zeros((5, 5), np.int32))
+    code, _, err = run(capsys, "evaluate", tmp_path / "labels.npy", scene)
+    assert_one_line_error(code, err)
+    assert "shapes differ" in err
+
+
+# ----------------------------------------------------------------------------------------------------
+# progress bar
+
+
+class _Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_bar_only_on_a_terminal():
+    tty, pipe = _Terminal(), io.StringIO()
+    for stream in (tty, pipe):
+        bar = _Progress(10, stream)
+        bar.start("x")
+        bar(5, 3, 7)
+        bar.close()
+    assert "[############............] growth step 5/10, 3 of 7 models growing" in tty.getvalue()
+    assert pipe.getvalue() == ""
