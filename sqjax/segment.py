@@ -45,6 +45,8 @@ class SegmentOptions:
     - `weights`: K1, K2, K3 (None = `SelectionWeights.for_threshold(tau)`); `selector`: "greedy" (the
       paper), "local" or "exact".
     - `merge`: try joining selected models whose union one superquadric explains (occlusion splits).
+    - `min_exclusive`: after the final selection, a model explaining less than this share of its
+      region alone (the rest is also explained by others) is dropped as redundant.
     """
 
     noise: float | None = None
@@ -66,6 +68,7 @@ class SegmentOptions:
     weights: SelectionWeights | None = None
     selector: str = "greedy"
     merge: bool = True
+    min_exclusive: float = 0.2
     jump_factor: float = 4.0
 
 
@@ -418,6 +421,26 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
     models.active[act[~has_new]] = False
 
 
+def _prune_redundant(models: _Models, min_exclusive: float) -> int:
+    """Drop, one at a time, the selected model that explains the smallest share of points no other
+    selected model explains, while that share is below `min_exclusive`. Returns how many went.
+
+    Eq. 2 prices a model at K3 N_i points, so a model that duplicates another except for a few dozen
+    points can still be selected; such a model is not a part of its own.
+    """
+    dropped = 0
+    while len(models.theta) > 1:
+        B = models.regions
+        cover = B.sum(0)
+        excl = (B & (cover == 1)[None]).sum(1) / np.maximum(B.sum(1), 1)
+        i = int(np.argmin(excl))
+        if excl[i] >= min_exclusive:
+            break
+        models.take(np.arange(len(models.theta)) != i)
+        dropped += 1
+    return dropped
+
+
 def _merge(run: _Runner, models: _Models, opts):
     """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits)."""
     M = len(models.theta)
@@ -491,6 +514,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             models.take(m)
             stats["selections"] += 1
             stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
+            stats["pruned"] = _prune_redundant(models, opts.min_exclusive)
             history.append(models.theta.copy())
         parts, labels = _finish(run, models)
         history = [_to_world(h, run.centre) for h in history]
