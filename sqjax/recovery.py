@@ -1,0 +1,357 @@
+"""Model recovery (the paper's section 2.1 and 3.2): seeds, and the growth of every hypothesis.
+
+Host orchestration in numpy around jit-compiled batch kernels: the refits of all active hypotheses at
+a growth step (`fitting.fit_padded`, warm-started) and the distances of every data point to every
+active model (`_distances`). Kernels are called on fixed chunks of `_CHUNK` hypotheses and padded
+point counts, so a growth step never recompiles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import rotation as so3
+from .fitting import FitOptions, bucket, fit_padded, to_superquadric
+from .rangeimage import RangeImage
+from .superquadric import Superquadric, contains, distance
+
+if TYPE_CHECKING:
+    from .segment import SegmentOptions
+
+NUM_PARAMS = 11
+_CHUNK = 32   # hypotheses per kernel call: fixed, so the kernels compile once
+
+
+@dataclasses.dataclass
+class _Domain:
+    points: np.ndarray            # (P, 3) valid points
+    neighbours: np.ndarray        # (P, k) indices into points, -1 for none
+    seeds: list                   # index arrays, one per seed window
+    index: np.ndarray             # (P,) flat pixel index (images) or point index (clouds)
+    shape: tuple                  # label output shape
+
+
+def estimate_noise(image: RangeImage) -> float:
+    """Robust depth-noise std from second differences of the depth along rows and columns.
+
+    For a smooth surface z(u-1) - 2 z(u) + z(u+1) has std sqrt(6) sigma; the median absolute value
+    (/0.6745) ignores edges. Floored at 1e-4 of the median depth.
+    """
+    z = image.depth.astype(np.float64)
+    d = np.concatenate([(z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel(), (z[:-2] - 2 * z[1:-1] + z[2:]).ravel()])
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return float(1e-3 * np.nanmedian(np.abs(z))) if np.isfinite(z).any() else 1.0
+    sigma = np.median(np.abs(d)) / 0.6745 / np.sqrt(6.0)
+    return float(max(sigma, 1e-4 * np.nanmedian(np.abs(z))))
+
+
+def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_seed) -> _Domain:
+    H, W = image.shape
+    valid = image.valid
+    pts = image.points
+    flat = np.flatnonzero(valid)
+    idmap = -np.ones(H * W, np.int64)
+    idmap[flat] = np.arange(flat.size)
+    idmap = idmap.reshape(H, W)
+    P = pts.reshape(-1, 3)[flat]
+    # adjacency: 8-neighbours, cut where the 3-D step is a depth discontinuity
+    offs = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+    rr, cc = np.divmod(flat, W)
+    nb = -np.ones((flat.size, 8), np.int64)
+    steps = np.full((flat.size, 8), np.inf)
+    for k, (dr, dc) in enumerate(offs):
+        r2, c2 = rr + dr, cc + dc
+        ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
+        j = np.where(ok, idmap[np.clip(r2, 0, H - 1), np.clip(c2, 0, W - 1)], -1)
+        nb[:, k] = j
+        good = j >= 0
+        steps[good, k] = np.linalg.norm(P[good] - P[j[good]], axis=1) / np.hypot(dr, dc)
+    typical = np.median(steps[np.isfinite(steps)]) if np.isfinite(steps).any() else 1.0
+    jump = steps > jump_factor * typical + 6.0 * noise
+    cut = (nb >= 0) & jump
+    nb[cut] = -1
+    broken = cut.any(1)
+    seeds = []
+    for r0 in range(0, max(H - window, 0) + 1, stride):
+        for c0 in range(0, max(W - window, 0) + 1, stride):
+            ids = idmap[r0 : r0 + window, c0 : c0 + window].ravel()
+            ids = ids[ids >= 0]
+            if ids.size >= min_seed and not broken[ids].any():
+                seeds.append(ids)
+    return _Domain(P, nb, seeds, flat, (H, W))
+
+
+def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Domain:
+    P = np.asarray(points, np.float64)
+    nb = _knn(P, k)
+    d = np.linalg.norm(P[nb] - P[:, None], axis=-1)
+    nb = np.where(d > 4.0 * np.median(d), -1, nb)
+    # seeds: farthest-point samples, each with its `window` nearest points
+    n_seeds = max(1, min(256, P.shape[0] // max(window, 1)))
+    centres = [0]
+    dmin = np.linalg.norm(P - P[0], axis=1)
+    for _ in range(n_seeds - 1):
+        centres.append(int(np.argmax(dmin)))
+        dmin = np.minimum(dmin, np.linalg.norm(P - P[centres[-1]], axis=1))
+    seeds = [ids for ids in _knn(P, window, P[centres]) if ids.size >= min_seed]
+    return _Domain(P, nb, seeds, np.arange(P.shape[0]), (P.shape[0],))
+
+
+def _knn(P, k, queries=None, block=2048):
+    """k nearest neighbours (excluding the query itself when queries is None), brute force in blocks."""
+    Q = P if queries is None else queries
+    k_eff = min(k + (queries is None), P.shape[0])
+    out = np.empty((Q.shape[0], k_eff), np.int64)
+    sq = np.sum(P * P, 1)
+    for s in range(0, Q.shape[0], block):
+        q = Q[s : s + block]
+        d = sq[None] - 2 * q @ P.T + np.sum(q * q, 1)[:, None]
+        idx = np.argpartition(d, k_eff - 1, axis=1)[:, :k_eff]
+        order = np.take_along_axis(d, idx, 1).argsort(1)
+        out[s : s + block] = np.take_along_axis(idx, order, 1)
+    return out[:, 1:] if queries is None else out
+
+
+# ----------------------------------------------------------------------------------------------------
+# jitted kernels over all data points
+
+
+@eqx.filter_jit
+def _distances(theta, points, enlarge, margin):
+    """theta (K, 11), points (P, 3) -> eq. 10 distances (K, P) and inside-enlarged-model (K, P) bool."""
+    def one(th):
+        sq = to_superquadric(th)
+        big = Superquadric(sq.size * enlarge + margin, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend)
+        return distance(sq, points), contains(big, points)
+    return jax.vmap(one)(theta)
+
+
+def _pad_rows(a, n, fill):
+    return np.concatenate([a, np.repeat(fill[None], n - a.shape[0], 0)]) if n > a.shape[0] else a
+
+
+class _Models:
+    """The hypotheses on the host: parameters (M, 11), regions (M, P) bool, distances (M, P) of every
+    point to each model, inside-the-enlarged-model (M, P), and the active flags (M,)."""
+
+    def __init__(self, theta, regions, dist, inside):
+        self.theta, self.regions, self.dist, self.inside = theta, regions, dist, inside
+        self.active = np.ones(len(theta), bool)
+        self.loose = np.ones(len(theta), bool)     # admission at admit_factor * tau (else tau)
+
+    def take(self, keep):
+        for name in ("theta", "regions", "dist", "inside", "active", "loose"):
+            setattr(self, name, getattr(self, name)[keep])
+
+
+class _Runner:
+    def __init__(self, dom: _Domain, opts: SegmentOptions, noise: float, tau: float, dtype):
+        self.dom, self.opts, self.noise, self.tau, self.dtype = dom, opts, noise, tau, dtype
+        Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
+        self.centre = dom.points.mean(0)
+        self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
+        self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.full(3, 1e6)), dtype)
+        self.P = dom.points.shape[0]
+        self.margin = 2.0 * tau
+
+    def set_noise(self, noise):
+        self.noise, self.tau = noise, self.opts.threshold_factor * noise
+        self.margin = 2.0 * self.tau
+
+    def distances(self, theta):
+        """(K, 11) -> eq. 10 distances (K, P) and inside-the-enlarged-model (K, P), in fixed-size chunks."""
+        K = theta.shape[0]
+        ds, ins = [], []
+        for s in range(0, K, _CHUNK):
+            th = _pad_rows(theta[s : s + _CHUNK], _CHUNK, theta[s])
+            d, inside = _distances(jnp.asarray(th, self.dtype), self.points,
+                                   jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
+            ds.append(np.asarray(d)[:, : self.P])
+            ins.append(np.asarray(inside)[:, : self.P])
+        return np.concatenate(ds)[:K].astype(np.float64), np.concatenate(ins)[:K]
+
+    def fit(self, regions, theta0, steps):
+        """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
+        fitter's own multistart (moment axes + EMS switches) when theta0 is None.
+
+        Calls the kernel on fixed (chunk, max_points) shapes: one compilation serves every step.
+        """
+        K = len(regions)
+        cap = self.opts.max_points
+        N = bucket(cap, 32)
+        opts = FitOptions(max_steps=steps, multistart=theta0 is None)
+        out = []
+        for s in range(0, K, _CHUNK):
+            pts = np.zeros((_CHUNK, N, 3))
+            msk = np.zeros((_CHUNK, N), bool)
+            for i in range(_CHUNK):
+                r = regions[min(s + i, K - 1)]
+                if r.size > cap:
+                    r = r[np.linspace(0, r.size - 1, cap).astype(np.int64)]
+                pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
+            th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0[s : s + _CHUNK], _CHUNK, theta0[s]),
+                                                          self.dtype)
+            theta, _, _, _ = fit_padded(jnp.asarray(pts, self.dtype), jnp.asarray(msk), th0, opts)
+            out.append(np.asarray(theta))
+        theta = np.concatenate(out)[:K].astype(np.float64)
+        return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
+
+
+def _dilate(regions, neighbours, rings):
+    out = regions
+    for _ in range(rings):
+        nb = np.where(neighbours >= 0, neighbours, 0)
+        hit = out[:, nb] & (neighbours >= 0)[None]
+        out = out | hit.any(-1)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# the recover-and-select loop
+
+
+def _starts(points: np.ndarray, regions: list) -> np.ndarray:
+    """Starting models (C=3, K, 11) for point sets given as index arrays: the moment ellipsoid of
+    Solina & Bajcsy, and a thick ellipsoid and box.
+
+    Axes from the central second moments (z = the direction of least spread, the surface normal of a
+    patch), half-sizes from the extents, the thickness floored at half the mean lateral half-size.
+    The floor matters: on a nearly planar patch the size-weighted cost (eq. 7) is smallest for a
+    slab as thin as the noise, which explains the points badly; a thick start finds the solid.
+    """
+    K = len(regions)
+    R = np.zeros((K, 3, 3))
+    centre, half, thin = np.zeros((K, 3)), np.zeros((K, 3)), np.zeros((K, 3))
+    for i, ids in enumerate(regions):
+        q = points[ids]
+        c = q.mean(0)
+        _, V = np.linalg.eigh(np.cov((q - c).T))
+        V = V[:, ::-1].copy()                       # largest spread first; z = least
+        V[:, 2] *= np.sign(np.linalg.det(V))
+        loc = (q - c) @ V
+        lo, hi = loc.min(0), loc.max(0)
+        h = np.maximum((hi - lo) / 2, 1e-9)
+        thin[i] = h
+        h = h.copy()
+        h[2] = max(h[2], 0.25 * (h[0] + h[1]))
+        R[i], centre[i], half[i] = V, c + V @ ((lo + hi) / 2), h
+    w = np.asarray(_log_rotations(jnp.asarray(_pad_rows(R, bucket(K, 32), np.eye(3)))), np.float64)[:K]
+    out = [np.concatenate([np.log(np.maximum(thin, 1e-3 * thin.max(1, keepdims=True))), np.ones((K, 2)), w, centre], 1)]
+    for e in (1.0, 0.3):
+        out.append(np.concatenate([np.log(half), np.full((K, 2), e), w, centre], 1))
+    return np.stack(out)
+
+
+_log_rotations = jax.jit(so3.log)
+
+
+def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False):
+    """Fit every region from each start of `_starts` (and the fitter's multistart if asked); keep, per region, the start whose fit explains
+    most of the region's points within tau (eq. 10). Returns theta (K, 11), distances, inside flags."""
+    best = None
+    starts = list(_starts(run.host_points, regions)) + ([None] if multistart else [])
+    for th0 in starts:
+        theta = run.fit(regions, th0, steps)
+        ok = np.isfinite(theta).all(1)
+        theta = np.where(ok[:, None], theta, 0.0)
+        d, inside = run.distances(theta)
+        score = np.array([np.mean(d[i, r] < run.tau) - 1e-3 * np.sqrt(np.mean(np.minimum(d[i, r], 1e3) ** 2))
+                          / run.tau if ok[i] else -np.inf for i, r in enumerate(regions)])
+        if best is None:
+            best = [theta, d, inside, score]
+        else:
+            better = score > best[3]
+            for j, new in enumerate((theta, d, inside, score)):
+                best[j] = np.where(better.reshape((-1,) + (1,) * (new.ndim - 1)), new, best[j])
+    return best[0], best[1], best[2], best[3]
+
+
+def _seed(run: _Runner, opts: SegmentOptions):
+    dom = run.dom
+    if not dom.seeds:
+        return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), np.zeros((0, run.P)),
+                       np.zeros((0, run.P), bool))
+    theta, d, inside, score = _fit_best(run, dom.seeds, opts.fit_steps)
+    if opts.adaptive_noise and opts.noise is None and opts.threshold is None:
+        # Real surfaces are not exact superquadrics: take the noise as at least the typical residual
+        # of the seed fits (robust: median over seeds of the median absolute distance / 0.6745).
+        per_seed = [np.median(d[i, ids]) / 0.6745 for i, ids in enumerate(dom.seeds) if np.isfinite(score[i])]
+        if per_seed:
+            run.set_noise(max(run.noise, float(np.median(per_seed))))
+            d, inside = run.distances(theta)
+    regions = np.zeros((len(dom.seeds), run.P), bool)
+    keep = np.isfinite(score)
+    for i, ids in enumerate(dom.seeds):
+        inl = d[i, ids] < run.tau
+        keep[i] &= inl.mean() >= opts.seed_inlier_fraction      # statistically consistent with the noise
+        regions[i, ids[inl]] = True
+    models = _Models(theta, regions, d, inside)
+    models.take(keep)
+    return models
+
+
+def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
+    """One growth step for every active model: enlarge, admit adjacent points near the model, refit."""
+    act = np.flatnonzero(models.active)
+    if act.size == 0:
+        return
+    R = models.regions[act]
+    cand = _dilate(R, run.dom.neighbours, opts.rings) & ~R
+    factor = np.where(models.loose[act], opts.admit_factor, 1.0)[:, None]
+    admit = cand & models.inside[act] & (models.dist[act] < factor * run.tau)
+    grown = R | admit
+    has_new = admit.any(1)
+    theta = models.theta[act].copy()
+    if has_new.any():
+        sel = np.flatnonzero(has_new)
+        new_theta = run.fit([np.flatnonzero(grown[i]) for i in sel], theta[sel], opts.fit_steps)
+        new_d, new_in = run.distances(np.nan_to_num(new_theta))
+        for k, i in enumerate(sel):
+            m = act[i]
+            region = grown[i] & (new_d[k] < run.tau)
+            ok = np.isfinite(new_theta[k]).all() and region.sum() >= opts.keep_fraction * grown[i].sum()
+            if ok and region.sum() > R[i].sum():
+                models.theta[m], models.regions[m], models.dist[m], models.inside[m] = (new_theta[k], region,
+                                                                                       new_d[k], new_in[k])
+                models.loose[m] = True
+            elif models.loose[m]:
+                models.loose[m] = False             # retry with only the points within tau
+            else:
+                models.active[m] = False            # fit broke down or no growth: keep the last good state
+    models.active[act[~has_new]] = False
+
+
+def _domain(data, opts: SegmentOptions, k: int):
+    if isinstance(data, RangeImage):
+        valid = data.valid
+        if not valid.any():
+            raise ValueError("segment: the range image has no valid pixel (all depths are NaN, 0 or inf)")
+        if valid.sum() < opts.min_seed_points:
+            raise ValueError(f"segment: the range image has {int(valid.sum())} valid pixels; at least "
+                             f"{opts.min_seed_points} are needed for one seed")
+        noise = opts.noise if opts.noise is not None else estimate_noise(data)
+        tau = opts.threshold if opts.threshold is not None else opts.threshold_factor * noise
+        H, W = data.shape
+        window = opts.window or int(np.clip(round(min(H, W) / 12), 4, 32))
+        window = min(window, H, W)
+        stride = opts.stride or max(window // 2, 1)
+        return _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points), noise, tau
+    pts = np.asarray(data, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"segment: expected a RangeImage or an (P, 3) array, got shape {pts.shape}")
+    pts = pts[np.isfinite(pts).all(1)]
+    if pts.shape[0] < opts.min_seed_points:
+        raise ValueError(f"segment: {pts.shape[0]} valid points; at least {opts.min_seed_points} are needed")
+    nb = _knn(pts, k)
+    spacing = np.median(np.linalg.norm(pts[nb[:, 0]] - pts, axis=1))
+    noise = opts.noise if opts.noise is not None else float(max(spacing / 4, 1e-12))
+    tau = opts.threshold if opts.threshold is not None else opts.threshold_factor * noise
+    window = opts.window or max(opts.min_seed_points, 48)
+    return _cloud_domain(pts, k, window, opts.min_seed_points), noise, tau
