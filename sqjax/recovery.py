@@ -123,13 +123,43 @@ def _knn(P, k, queries=None, block=2048):
 # jitted kernels over all data points
 
 
+def _log_f_and_grad(x, log_size, epsilon):
+    """log F (eq. 5) of model-frame points x (P, 3) and log |d log F / dx| (P,), closed form.
+
+    With A, B, C the log-powers of |x/a1|, |y/a2|, |z/a3| and the two log-sum-exps s = lse(A, B),
+    t = lse(e2/e1 s, C): d log F / dx = 2 w_t w_s / x, d/dy = 2 w_t (1 - w_s) / y, d/dz = 2 (1 - w_t) / z,
+    where w are the softmax weights; everything stays in logs, so it is finite at 0 and far away.
+    """
+    e1, e2 = epsilon[0], epsilon[1]
+    tiny = jnp.finfo(x.dtype).tiny
+    lx = jnp.log(jnp.maximum(jnp.abs(x), tiny))
+    la = lx - log_size
+    A, B, C = la[:, 0] * (2 / e2), la[:, 1] * (2 / e2), la[:, 2] * (2 / e1)
+    s = jnp.logaddexp(A, B)
+    u = s * (e2 / e1)
+    t = jnp.logaddexp(u, C)
+    log_f = e1 * t
+    log_g = jnp.stack([u - t + A - s, u - t + B - s, C - t], -1) - lx + jnp.log(2.0)   # log |components|
+    return log_f, 0.5 * jax.scipy.special.logsumexp(2.0 * log_g, axis=-1)
+
+
 @eqx.filter_jit
 def _distances(theta, points, enlarge, margin):
-    """theta (K, 11), points (P, 3) -> eq. 10 distances (K, P) and inside-enlarged-model (K, P) bool."""
+    """theta (K, 11), points (P, 3) -> eq. 10 distances (K, P) and inside-enlarged-model (K, P) bool.
+
+    Undeformed models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|,
+    rotation-invariant, so it is evaluated in the model frame without autodiff.
+    """
     def one(th):
-        sq = to_superquadric(th)
-        big = Superquadric(sq.size * enlarge + margin, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend)
-        return distance(sq, points), contains(big, points)
+        la, e, w, t = th[0:3], th[3:5], th[5:8], th[8:11]
+        x = (points - t) @ so3.exp(w)
+        log_f, log_gnorm = _log_f_and_grad(x, la, e)
+        lf = jnp.where(log_f == 0.0, 1e-30, log_f)           # safe operand: F = 1 gives d = 0 below
+        log_num = jnp.where(lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
+                            jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30))))     # log |1 - 1/F|
+        d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
+        big, _ = _log_f_and_grad(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
+        return d, big <= 0.0
     return jax.vmap(one)(theta)
 
 

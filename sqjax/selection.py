@@ -35,11 +35,13 @@ def build_q(regions, sq_dist, num_params, weights: SelectionWeights) -> np.ndarr
     **Arguments:** `regions` (M, P) bool (R_i over P data points); `sq_dist` (M, P) squared eq. 10
     distances d_i^2 (used only inside R_i); `num_params` (M,) N_i.
     """
-    B = np.asarray(regions, np.float32)
+    regions = np.asarray(regions, bool)
     D = np.where(regions, sq_dist, 0.0).astype(np.float32)
-    n = B.sum(1)
+    n = regions.sum(1).astype(np.float32)
     xi = D.sum(1)
-    overlap = B @ B.T                        # |R_i ∩ R_j|
+    shared = regions.sum(0) >= 2             # only points in two or more regions enter the overlaps
+    B, D = regions[:, shared].astype(np.float32), D[:, shared]
+    overlap = B @ B.T                        # |R_i ∩ R_j| (its diagonal is not used)
     s = D @ B.T                              # s_ij = sum over R_i ∩ R_j of d_i^2
     xi_ij = np.maximum(s, s.T)               # eq. 4
     Q = (-weights.k1 * overlap + weights.k2 * xi_ij) / 2.0   # eq. 3
