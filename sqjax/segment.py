@@ -53,7 +53,7 @@ class SegmentOptions:
     seed_inlier_fraction: float = 0.9
     enlarge: float = 1.15
     admit_factor: float = 3.0
-    rings: int = 2
+    rings: int = 4
     keep_fraction: float = 0.9
     select_every: int = 3
     max_steps: int = 60
