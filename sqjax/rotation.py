@@ -60,13 +60,19 @@ def _quaternion(R):
 
 
 def log(R):
-    """Rotation matrix (..., 3, 3) -> rotation vector (..., 3) with angle in [0, pi]."""
+    """Rotation matrix (..., 3, 3) -> rotation vector (..., 3) with angle in [0, pi].
+
+    Through the unit quaternion (w, v), w >= 0: angle = 2 atan2(|v|, w), with a Taylor branch for small
+    |v|; both branches see safe operands, so values and gradients stay finite at 0 and at pi.
+    """
     q = _quaternion(R)
     w, v = q[..., 0], q[..., 1:]
     n2 = jnp.sum(v * v, -1)
     small = n2 < _eps(R.dtype)
     n = jnp.sqrt(jnp.where(small, 1.0, n2))
-    scale = jnp.where(small, 2.0 / w - 2.0 * n2 / (3.0 * w**3), 2.0 * jnp.arctan2(n, w) / n)
+    ws = jnp.where(small, w, 1.0)               # w ~ 1 on the Taylor branch; never 0 there
+    taylor = 2.0 / ws - 2.0 * n2 / (3.0 * ws**3)
+    scale = jnp.where(small, taylor, 2.0 * jnp.arctan2(n, w) / n)
     return v * scale[..., None]
 
 
@@ -92,11 +98,18 @@ def from_euler(angles):
 def to_euler(R):
     """Rotation matrix (..., 3, 3) -> ZYZ Euler angles (..., 3), theta in [0, pi].
 
-    At the gimbal lock (theta = 0 or pi) psi is set to 0 and phi carries the whole rotation.
+    At the gimbal lock (theta = 0 or pi) psi is set to 0 and phi carries the whole rotation. Every
+    `arctan2` and `sqrt` sees a safe operand on the branch not taken, so gradients are finite
+    (zero for psi at the lock, where the angles are not differentiable).
     """
-    theta = jnp.arctan2(jnp.hypot(R[..., 0, 2], R[..., 1, 2]), R[..., 2, 2])
-    s = jnp.hypot(R[..., 0, 2], R[..., 1, 2])
-    lock = s < _eps(R.dtype)
-    phi = jnp.where(lock, jnp.arctan2(-R[..., 0, 1], R[..., 1, 1]), jnp.arctan2(R[..., 1, 2], R[..., 0, 2]))
-    psi = jnp.where(lock, 0.0, jnp.arctan2(R[..., 2, 1], -R[..., 2, 0]))
+    s2 = R[..., 0, 2] ** 2 + R[..., 1, 2] ** 2
+    lock = s2 < _eps(R.dtype) ** 2
+    s = jnp.where(lock, 0.0, jnp.sqrt(jnp.where(lock, 1.0, s2)))
+    theta = jnp.arctan2(s, R[..., 2, 2])
+    safe = lambda x: jnp.where(lock, 1.0, x)  # noqa: E731
+    phi_free = jnp.arctan2(safe(R[..., 1, 2]), safe(R[..., 0, 2]))
+    psi_free = jnp.arctan2(safe(R[..., 2, 1]), safe(-R[..., 2, 0]))
+    phi_lock = jnp.arctan2(jnp.where(lock, -R[..., 0, 1], 0.0), jnp.where(lock, R[..., 1, 1], 1.0))
+    phi = jnp.where(lock, phi_lock, phi_free)
+    psi = jnp.where(lock, 0.0, psi_free)
     return jnp.stack([phi, theta, psi], -1)

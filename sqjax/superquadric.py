@@ -2,8 +2,9 @@
 
 Every function here is pure `jax.numpy` for one superquadric and points of shape `(..., 3)`; use
 `jax.vmap` for batches. Powers `|x / a| ** (2 / e)` are evaluated in the log domain,
-`exp((2 / e) * (log|x| - log a))`, with `log|x|` taken of a safe operand, so values and gradients are
-finite for every finite input (at the centre, on the axes, far away, e down to 0.1).
+`exp((2 / e) * (log|x| - log a))`, with `log|x|` taken of a safe operand (|x| floored at 1e-10 a in
+float32, 1e-20 a in float64), so values and gradients are finite for every finite input (at the centre,
+on the axes, far away, e down to 0.1).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class Superquadric(eqx.Module):
 
     @classmethod
     def create(cls, size, epsilon=(1.0, 1.0), *, rotation=None, euler=None, translation=(0.0, 0.0, 0.0),
-               taper=(0.0, 0.0), bend=(0.0, 0.0), dtype=jnp.float32) -> "Superquadric":
+               taper=(0.0, 0.0), bend=(0.0, 0.0), dtype=jnp.float32) -> Superquadric:
         """Build from plain values; `euler` = ZYZ angles (phi, theta, psi) as in the paper, or `rotation`."""
         size = jnp.asarray(size, dtype)
         batch = size.shape[:-1]
@@ -161,17 +162,60 @@ def to_world_frame(sq: Superquadric, x):
 # the inside-outside function and what is built on it
 
 
+@jax.custom_jvp
+def _logaddexp(a, b):
+    """log(exp(a) + exp(b)) for finite a, b; its JVP reuses the forward exponential (no NaN, no overflow)."""
+    return jnp.maximum(a, b) + jnp.log1p(jnp.exp(-jnp.abs(a - b)))
+
+
+@_logaddexp.defjvp
+def _logaddexp_jvp(primals, tangents):
+    a, b = primals
+    ta, tb = tangents
+    q = jnp.exp(-jnp.abs(a - b))
+    out = jnp.maximum(a, b) + jnp.log1p(q)
+    w_big = 1.0 / (1.0 + q)                       # weight of the larger argument, in [1/2, 1]
+    wa = jnp.where(a >= b, w_big, 1.0 - w_big)
+    return out, wa * ta + (1.0 - wa) * tb
+
+
+def _ratio_floor(dtype) -> float:
+    # |x / a| below this counts as this: its power is far below the rounding of F near the surface,
+    # and 1 / |x| (and its square, in second derivatives) stays finite.
+    return 1e-10 if jnp.dtype(dtype) == jnp.float32 else 1e-20
+
+
+def log_inside_outside_xyz(x, y, z, log_size, epsilon):
+    """log F (eq. 5) of model-frame coordinates given as three arrays of one shape (the kernel form).
+
+    `log_size[..., i]` and `epsilon[..., j]` broadcast against the coordinates. Two log-sum-exps of
+    `(2 / e) (log|x| - log a)`, with `|x|` floored at a tiny fraction of `a` *before* the logarithm
+    (a safe operand: no infinite derivative of any order), so values, gradients and Hessians are
+    finite for every finite input; capped far outside the model.
+    """
+    e1, e2 = epsilon[..., 0], epsilon[..., 1]
+    floor = _ratio_floor(x.dtype)
+
+    def log_ratio(c, la):
+        thr = jnp.exp(la) * floor
+        ac = jnp.abs(c)
+        return jnp.log(jnp.where(ac > thr, ac, thr)) - la
+
+    lx = log_ratio(x, log_size[..., 0])
+    ly = log_ratio(y, log_size[..., 1])
+    lz = log_ratio(z, log_size[..., 2])
+    s = _logaddexp(lx * (2.0 / e2), ly * (2.0 / e2))
+    t = _logaddexp(s * (e2 / e1), lz * (2.0 / e1))
+    return jnp.minimum(e1 * t, _log_cap(x.dtype))
+
+
 def log_inside_outside_local(x, log_size, epsilon):
     """log F (eq. 5) of model-frame points x (..., 3), for log sizes (3,) and exponents (2,).
 
     `F = ((|x/a1|^(2/e2) + |y/a2|^(2/e2))^(e2/e1) + |z/a3|^(2/e1))^e1`, computed as two log-sum-exps.
     Finite with finite gradients for every finite input; capped at a value far outside any model.
     """
-    e1, e2 = epsilon[..., 0:1], epsilon[..., 1:2]
-    la = jnp.log(jnp.maximum(jnp.abs(x), _tiny(x.dtype))) - log_size
-    s = jnp.logaddexp(la[..., 0:1] * (2.0 / e2), la[..., 1:2] * (2.0 / e2))
-    t = jnp.logaddexp(s * (e2 / e1), la[..., 2:3] * (2.0 / e1))
-    return jnp.minimum(e1 * t, _log_cap(x.dtype))[..., 0]
+    return log_inside_outside_xyz(x[..., 0], x[..., 1], x[..., 2], log_size, epsilon)
 
 
 def inside_outside(sq: Superquadric, points):
@@ -188,7 +232,9 @@ def contains(sq: Superquadric, points):
 
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
-    return jnp.sqrt(jnp.prod(sq.size, -1)) * (inside_outside(sq, points) - 1.0)
+    x = to_model_frame(sq, points)
+    log_f = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
+    return jnp.sqrt(jnp.prod(sq.size, -1)) * jnp.expm1(log_f)
 
 
 def distance(sq: Superquadric, points):
@@ -202,7 +248,10 @@ def distance(sq: Superquadric, points):
     flat = points.reshape(-1, 3)
     val, grad = jax.vmap(jax.value_and_grad(F))(flat)
     g2 = jnp.sum(grad * grad, -1)
-    d = jnp.abs(val - 1.0) * jax.lax.rsqrt(g2 + _tiny(points.dtype) / jnp.finfo(points.dtype).eps)
+    # |grad F| is floored (1e-12 in float32) on a safe operand, so d <= 1e12 |F - 1| near the centre,
+    # where F and its gradient vanish, and the derivative of the inverse square root stays finite.
+    floor = 1e-24 if points.dtype == jnp.float32 else 1e-60
+    d = jnp.abs(val - 1.0) * jax.lax.rsqrt(jnp.where(g2 > floor, g2, floor))
     return d.reshape(points.shape[:-1])
 
 
@@ -263,7 +312,9 @@ def to_trimesh(sq: Superquadric, resolution: int = 48):
 def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.0, viewpoint=None):
     """`n` points (numpy `(n, 3)`) uniform by area on the surface, with Gaussian noise of std `noise`.
 
-    With `viewpoint` (3,) only the side facing that point is sampled (one range-sensor view).
+    Points are drawn on a fine mesh and moved along the ray from the model centre onto the exact surface
+    (F = 1 up to rounding), so no chord error biases them inwards. With `viewpoint` (3,) only the side
+    facing that point is sampled (one range-sensor view; self-occlusion of concave shapes is ignored).
     """
     import trimesh
 
@@ -274,5 +325,13 @@ def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.
         facing = np.einsum("ij,ij->i", mesh.face_normals, np.asarray(viewpoint, float) - centres) > 0
         mesh = mesh.submesh([np.nonzero(facing)[0]], append=True)
     pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
-    return np.asarray(pts) + noise * rng.standard_normal((n, 3))
+    pts = np.asarray(_onto_surface(sq, jnp.asarray(pts, sq.size.dtype)), float)
+    return pts + noise * rng.standard_normal((n, 3))
 
+
+@jax.jit
+def _onto_surface(sq: Superquadric, points):
+    """Move world points along the ray from the centre (undeformed model frame) onto the surface F = 1."""
+    x = to_model_frame(sq, points)
+    log_f = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
+    return to_world_frame(sq, x * jnp.exp(-0.5 * log_f)[..., None])

@@ -1,0 +1,194 @@
+"""The superquadric: eq. 5 on its surface, inside/outside, NaN-safety at the hard points, volume, meshes, distances."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sqjax import (
+    Superquadric,
+    contains,
+    distance,
+    inside_outside,
+    radial_distance,
+    residual,
+    sample_surface,
+    to_trimesh,
+)
+from sqjax import rotation as so3
+
+SHAPES = [  # (size, epsilon, extra keywords)
+    ((1.0, 0.6, 1.4), (1.0, 1.0), {}),
+    ((0.8, 1.2, 0.5), (0.1, 0.1), {}),
+    ((1.5, 0.7, 0.9), (1.9, 1.9), {}),
+    ((0.9, 1.1, 1.3), (0.3, 1.7), {}),
+    ((1.0, 0.8, 1.5), (0.6, 0.9), {"taper": (0.4, -0.3)}),
+    ((0.7, 0.9, 1.6), (0.8, 0.5), {"bend": (0.5, 0.7)}),
+    ((0.7, 0.9, 1.6), (0.4, 1.2), {"taper": (-0.2, 0.3), "bend": (0.3, -1.1)}),
+]
+POSE = {"euler": (0.4, 1.1, -2.3), "translation": (0.5, -1.0, 2.0)}
+
+
+def _sq(size, eps, extra, **kw):
+    return Superquadric.create(size, eps, **{**POSE, **extra, **kw})
+
+
+_jit_distance = jax.jit(distance)
+
+
+@jax.jit
+def _unit_normals(sq, pts):
+    g = jax.vmap(jax.grad(lambda p: inside_outside(sq, p)))(pts)
+    return g / jnp.linalg.norm(g, axis=-1, keepdims=True)
+
+
+@jax.jit
+def _scaled(sq, pts, scale):
+    """Points scaled about the centre in the undeformed model frame (F -> scale^2 F) and F, f, inside there."""
+    from sqjax.superquadric import to_model_frame, to_world_frame
+
+    p = to_world_frame(sq, scale * to_model_frame(sq, pts))
+    return inside_outside(sq, p), residual(sq, p), contains(sq, p)
+
+
+@pytest.mark.parametrize("size, eps, extra", SHAPES)
+def test_surface_samples_have_f_equal_one(size, eps, extra):
+    sq = _sq(size, eps, extra)
+    pts = jnp.asarray(sample_surface(sq, 2000, seed=3), jnp.float32)
+    F, f, _ = _scaled(sq, pts, 1.0)
+    assert np.allclose(np.asarray(F), 1.0, atol=2e-5)
+    assert np.abs(np.asarray(f)).max() < 1e-4
+
+
+@pytest.mark.parametrize("size, eps, extra", SHAPES)
+def test_inside_outside_signs(size, eps, extra):
+    sq = _sq(size, eps, extra)
+    surf = jnp.asarray(sample_surface(sq, 500, seed=1), jnp.float32)
+    centre = sq.translation
+    for scale, inside in ((0.9, True), (1.1, False)):
+        F, f, ins = _scaled(sq, surf, scale)
+        assert np.allclose(np.asarray(F), scale**2, rtol=1e-4)
+        assert bool(jnp.all(ins == inside))
+        assert bool(jnp.all((f < 0) == inside))
+    assert bool(contains(sq, centre)) and float(inside_outside(sq, centre)) < 1e-6
+
+
+def _hard_points(sq):
+    """Model-frame hard points -> world: centre, on each axis (0 .. 2 a), far away (|x / a| = 1e3), mixed."""
+    a = np.asarray(sq.size, float)
+    local = [np.zeros(3)]
+    for i, s in itertools.product(range(3), (1e-30, 1e-8, 0.5, 1.0, 2.0, 1e3)):
+        for sign in (1.0, -1.0):
+            v = np.zeros(3)
+            v[i] = sign * s * a[i]
+            local.append(v)
+    local += [1e3 * a * np.array(d) for d in ((1, 1, 0), (1, 0, 1), (0, 1, 1), (1, -1, 1))]
+    local += [a * np.array(d) for d in ((1, 1, 0), (0.3, 1e-7, 0.0), (1e-20, 1e-20, 1e-20))]
+    local = jnp.asarray(np.array(local), jnp.float32)
+    return local @ sq.rotation.T + sq.translation
+
+
+HARD_SHAPES = [((1.0, 0.5, 2.0), e, {}) for e in itertools.product((0.1, 1.0, 1.9), repeat=2)]
+HARD_SHAPES += [((1.0, 0.5, 2.0), (0.1, 1.9), {"taper": (0.5, -0.5), "bend": (0.2, 0.3)})]
+
+
+FUNCTIONS = (inside_outside, residual, distance, radial_distance)
+
+
+@jax.jit
+def _values_and_gradients(sq, pts):
+    """Every function of this module at pts; the gradients of their (squashed) sum w.r.t. each point and
+    the parameters: one reverse pass, in which a NaN or inf of any of the four would show."""
+    def total(s, p):
+        return sum(jnp.tanh(fn(s, p)) for fn in FUNCTIONS)
+
+    out = {fn.__name__: fn(sq, pts) for fn in FUNCTIONS}
+    out["d/dpoints"] = jax.vmap(jax.grad(total, argnums=1), in_axes=(None, 0))(sq, pts)
+    g = jax.grad(lambda s: jnp.sum(total(s, pts)))(sq)
+    out.update({f"d/d{name}": getattr(g, name) for name in ("size", "epsilon", "rotation", "translation",
+                                                              "taper", "bend")})
+    return out
+
+
+@pytest.mark.parametrize("size, eps, extra", HARD_SHAPES)
+def test_no_nan_at_hard_points(size, eps, extra):
+    sq = _sq(size, eps, extra)
+    for name, value in _values_and_gradients(sq, _hard_points(sq)).items():
+        assert bool(jnp.all(jnp.isfinite(value))), name
+
+
+@pytest.mark.parametrize("eps", [(1.0, 1.0), (0.5, 0.5), (0.3, 1.0), (1.0, 0.4), (1.5, 1.5)])
+def test_volume_formula_matches_mesh(eps):
+    sq = Superquadric.create((1.0, 0.7, 1.3), eps, **POSE)
+    mesh = to_trimesh(sq, 160)
+    assert mesh.is_watertight
+    assert mesh.volume == pytest.approx(float(sq.volume), rel=1e-2)
+    if eps == (1.0, 1.0):
+        assert float(sq.volume) == pytest.approx(4 / 3 * np.pi * 1.0 * 0.7 * 1.3, rel=1e-5)
+
+
+@pytest.mark.parametrize("size, eps, extra", SHAPES)
+def test_mesh_is_watertight(size, eps, extra):
+    mesh = to_trimesh(_sq(size, eps, extra), 32)
+    assert mesh.is_watertight
+    assert mesh.is_winding_consistent
+    assert mesh.volume > 0
+
+
+@pytest.mark.parametrize("size, eps", [((1.0, 0.6, 1.4), (1.0, 1.0)), ((1.0, 0.6, 1.4), (0.5, 0.8)),
+                                       ((0.8, 1.0, 0.6), (1.3, 0.7))])
+def test_eq10_distance_near_surface(size, eps):
+    """Points moved by h along the surface normal: eq. 10 gives h to first order."""
+    sq = Superquadric.create(size, eps, **POSE)
+    surf = jnp.asarray(sample_surface(sq, 400, seed=2), jnp.float32)
+    normal = _unit_normals(sq, surf)
+    for h in (-0.01, 0.01):
+        d = np.asarray(_jit_distance(sq, surf + h * normal))
+        # eq. 10 is first order: the error is a fraction of h (curvature), never of the size
+        assert np.median(np.abs(d - abs(h))) < 0.05 * abs(h)
+        assert np.percentile(np.abs(d - abs(h)), 90) < 0.2 * abs(h)
+    assert np.max(np.asarray(_jit_distance(sq, surf))) < 1e-5
+
+
+def test_radial_distance_exact_along_rays():
+    """For an ellipsoid, p = c + s R u with u on the surface has radial distance |s - 1| |u|."""
+    sq = Superquadric.create((1.2, 0.5, 0.8), (1.0, 1.0), **POSE)
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((300, 3))
+    a = np.asarray(sq.size, float)
+    u = d / np.sqrt(np.sum((d / a) ** 2, -1, keepdims=True))      # on the ellipsoid in the model frame
+    s = rng.uniform(0.05, 3.0, (300, 1))
+    world = (s * u) @ np.asarray(sq.rotation, float).T + np.asarray(sq.translation, float)
+    got = np.asarray(jax.jit(radial_distance)(sq, jnp.asarray(world, jnp.float32)))
+    want = np.abs(s[:, 0] - 1.0) * np.linalg.norm(u, axis=-1)
+    assert np.allclose(got, want, atol=2e-5, rtol=1e-4)
+
+
+def test_volume_monte_carlo_matches_formula():
+    sq = Superquadric.create((1.0, 0.7, 1.3), (0.4, 1.6), **POSE)
+    rng = np.random.default_rng(1)
+    local = rng.uniform(-1, 1, (200_000, 3)) * np.asarray(sq.size, float)
+    world = local @ np.asarray(sq.rotation, float).T + np.asarray(sq.translation, float)
+    frac = float(jnp.mean(contains(sq, jnp.asarray(world, jnp.float32))))
+    box = 8 * float(np.prod(np.asarray(sq.size)))
+    assert frac * box == pytest.approx(float(sq.volume), rel=1e-2)
+
+
+def test_one_view_samples_face_the_viewpoint():
+    sq = Superquadric.create((1.0, 0.8, 0.6), (0.5, 0.5), **POSE)
+    view = np.asarray(sq.translation, float) + np.array([8.0, 2.0, 1.0])
+    pts = sample_surface(sq, 1000, seed=0, viewpoint=view)
+    normal = np.asarray(_unit_normals(sq, jnp.asarray(pts, jnp.float32)))
+    assert np.mean(np.einsum("ij,ij->i", normal, view - pts) > 0) > 0.98
+    assert np.allclose(np.asarray(inside_outside(sq, jnp.asarray(pts, jnp.float32))), 1.0, atol=2e-5)
+
+
+def test_create_euler_and_rotation_agree():
+    a = Superquadric.create((1, 2, 3), euler=(0.1, 0.2, 0.3))
+    b = Superquadric.create((1, 2, 3), rotation=so3.from_euler(jnp.array([0.1, 0.2, 0.3])))
+    assert np.allclose(np.asarray(a.rotation), np.asarray(b.rotation))
+    assert np.allclose(np.asarray(a.euler), [0.1, 0.2, 0.3], atol=1e-6)
+    d = a.to_dict()
+    assert set(d) >= {"size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend"}
