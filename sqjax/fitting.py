@@ -1,11 +1,14 @@
 """Recovery of superquadrics (Solina & Bajcsy): batched Levenberg–Marquardt on the size-weighted residual.
 
 One jit-compiled call fits K padded point sets `(K, N, 3)` with masks `(K, N)`, every problem and every
-starting candidate side by side (`jax.vmap`), for a fixed number of LM steps. Derivatives of the
-residual come from autodiff of the per-point function in the model frame; the pose is chained by hand
-(translation: `-R g`, rotation: `g x x`), which keeps the Jacobian cheap. Gradients of the fitted
-parameters with respect to the points use the implicit function theorem at the optimum
-(`optimistix.implicit_jvp`), never differentiation through the iterations.
+starting candidate side by side (`jax.vmap`), for a fixed number of LM steps. The residual (eq. 7) and
+its derivatives come from autodiff of the per-point function in the model frame (`jax.value_and_grad`,
+coordinates held as three `(N,)` arrays so that XLA vectorises over points); the pose is chained by
+hand (translation: `g`, rotation: `g x x`) and J^T J is one `(P, N) @ (N, P)` product. Problems are
+processed a few at a time (`lax.map` over chunks of the batch) so that the points and every
+intermediate stay in cache through all LM steps. Gradients of the fitted parameters with respect
+to the points use the implicit function theorem at the optimum (`optimistix.ImplicitAdjoint`), never
+differentiation through the iterations.
 """
 
 from __future__ import annotations
@@ -18,30 +21,71 @@ import numpy as np
 import optimistix as optx
 
 from . import rotation as so3
-from .superquadric import EPSILON_RANGE, Superquadric, distance, log_inside_outside_local, untaper, unbend
+from .superquadric import EPSILON_RANGE, Superquadric, distance, log_inside_outside_xyz, unbend, untaper
 
 MIN_POINTS = 11
 """Fewest valid points a problem may have (one per parameter)."""
+
+STARTS = ("moments", "rim", "quadric")
+"""Initial-estimate families, each giving three axis assignments (see `FitOptions.starts`)."""
 
 
 class FitOptions(eqx.Module):
     """How the Levenberg–Marquardt recovery runs; every field is static (a compile-cache key).
 
-    - `max_steps`: LM steps per candidate (the paper: ~15 suffice).
-    - `multistart`: start from the three axis assignments of the moment ellipsoid, then try the two
-      "switched" solutions (EMS) of the best; keep the lowest cost. Ignored when `init` is given.
+    - `max_steps`: LM steps per candidate (the paper: ~15 suffice). The switched candidates get half.
+    - `multistart`: start from every family in `starts` (three axis assignments each) and every pair in
+      `epsilon_starts`, then try the two "switched" solutions (EMS) of the best; keep the lowest cost.
+      Without it only the first moment ellipsoid is used. Ignored when `init` is given.
+    - `starts`: initial-estimate families: `"moments"` (central second moments, the paper's start),
+      `"rim"` (one-view hypothesis: the centre lies behind the visible surface, at the rim end of the
+      least-spread moment axis), `"quadric"` (centre and axes of an algebraic least-squares quadric).
+    - `epsilon_starts`: starting exponent pairs (e1, e2); the paper starts from the ellipsoid (1, 1).
+    - `screen_points`: the multistart stages run on this many of the points (evenly strided), then the
+      winner takes `max_steps // 2` more steps on all of them; `None` runs every stage on all points.
     - `deform`: also fit tapering (Kx, Ky) and bending (k, alpha).
     - `epsilon_range`: bounds of the exponents e1, e2 (projection after each step).
     """
 
-    max_steps: int = eqx.field(static=True, default=20)
+    max_steps: int = eqx.field(static=True, default=15)
     multistart: bool = eqx.field(static=True, default=True)
+    starts: tuple[str, ...] = eqx.field(static=True, default=STARTS)
+    epsilon_starts: tuple[tuple[float, float], ...] = eqx.field(static=True, default=((1.0, 1.0), (1.6, 1.6)))
+    screen_points: int | None = eqx.field(static=True, default=256)
     deform: bool = eqx.field(static=True, default=False)
     epsilon_range: tuple[float, float] = eqx.field(static=True, default=EPSILON_RANGE)
+
+    def __check_init__(self):
+        if int(self.max_steps) < 1:
+            raise ValueError(f"FitOptions.max_steps must be >= 1, got {self.max_steps}")
+        unknown = set(self.starts) - set(STARTS)
+        if not self.starts or unknown:
+            raise ValueError(f"FitOptions.starts must be a non-empty subset of {STARTS}, got {self.starts}")
+        lo, hi = self.epsilon_range
+        if not 0.0 < lo < hi:
+            raise ValueError(f"FitOptions.epsilon_range must satisfy 0 < lo < hi, got {self.epsilon_range}")
+        if self.screen_points is not None and int(self.screen_points) < 4 * MIN_POINTS:
+            raise ValueError(f"FitOptions.screen_points must be None or >= {4 * MIN_POINTS}, got {self.screen_points}")
+        if not self.epsilon_starts or any(len(e) != 2 for e in self.epsilon_starts):
+            raise ValueError(f"FitOptions.epsilon_starts must be pairs (e1, e2), got {self.epsilon_starts}")
 
     @property
     def num_params(self) -> int:
         return 15 if self.deform else 11
+
+    @property
+    def num_candidates(self) -> int:
+        """Starting candidates per problem in the first stage (without `init`)."""
+        return 3 * len(self.starts) * len(self.epsilon_starts) if self.multistart else 1
+
+    def point_iterations(self, n: int) -> int:
+        """Residual-and-Jacobian evaluations of one problem padded to `n` points (points x steps x candidates)."""
+        if not self.multistart:
+            return (self.max_steps + 1) * n
+        half = max(self.max_steps // 2, 1)
+        m = n if self.screen_points is None else min(n, self.screen_points)
+        screen = (self.num_candidates * (self.max_steps + 1) + 2 * (half + 1)) * m
+        return screen + ((half + 1) * n if m < n else 0)
 
 
 class Fit(eqx.Module):
@@ -63,6 +107,7 @@ class Fit(eqx.Module):
 
 # ----------------------------------------------------------------------------------------------------
 # parameters: the global chart theta = [log a (3), e (2), rotation vector (3), t (3), (Kx, Ky, k, alpha)]
+# and the LM state (log a, e, R, t, d) whose rotation is updated on the manifold, R <- R exp(dw).
 
 
 def _split(theta, opts):
@@ -83,8 +128,9 @@ def _project(theta, opts):
     return theta
 
 
-def to_superquadric(theta, opts: FitOptions = FitOptions()) -> Superquadric:
-    """Parameter vector `(..., P)` of the global chart -> `Superquadric`."""
+def to_superquadric(theta, opts: FitOptions | None = None) -> Superquadric:
+    """Parameter vector `(..., P)` of the global chart -> `Superquadric` (P = 11, or 15 with deformations)."""
+    opts = opts if opts is not None else FitOptions(deform=theta.shape[-1] == 15)
     if theta.ndim > 1:
         return jax.vmap(lambda t: to_superquadric(t, opts))(theta)
     la, e, R, t, d = _split(theta, opts)
@@ -95,34 +141,60 @@ def to_superquadric(theta, opts: FitOptions = FitOptions()) -> Superquadric:
 # the per-point residual in the model frame and its structured Jacobian
 
 
-def _phi(x, la, e, d, deform: bool):
-    """Size-weighted residual f (eq. 7) of one model-frame point x (3,)."""
+def _residual_point(x, y, z, la, e, d, deform: bool):
+    """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7) of one model-frame point (x, y, z)."""
     if deform:
-        x = untaper(unbend(x, d[2:4]), d[0:2], jnp.exp(la[2]))
-    logF = log_inside_outside_local(x, la, e)
-    return jnp.exp(0.5 * jnp.sum(la)) * jnp.expm1(logF)
+        p = untaper(unbend(jnp.stack([x, y, z]), d[2:4]), d[0:2], jnp.exp(la[2:3]))
+        x, y, z = p[0], p[1], p[2]
+    log_f = log_inside_outside_xyz(x, y, z, la, e)
+    return jnp.exp(0.5 * (la[0] + la[1] + la[2])) * jnp.expm1(log_f)
+
+
+def _model_frame(state, points):
+    """points (3, N) world -> model-frame coordinates x, y, z, each (N,)."""
+    _, _, R, t, _ = state
+    x = R.T @ (points - t[:, None])
+    return x[0], x[1], x[2]
 
 
 def _normal_equations(state, points, mask, opts):
-    """Cost, J^T J and J^T r in the local chart [dla, de, dw (rotation), du (model-frame shift), dd]."""
-    la, e, R, t, d = state
-    x = (points - t) @ R
-    val_grad = jax.vmap(jax.value_and_grad(_phi, argnums=(0, 1, 2, 3)), in_axes=(0, None, None, None, None))
-    r, (gx, gla, ge, gd) = val_grad(x, la, e, d, opts.deform)
-    cols = [gla, ge, jnp.cross(gx, x), gx] + ([gd] if opts.deform else [])
+    """Cost, J^T J and J^T r in the local chart [dla, de, dw (rotation), du (model-frame shift), dd].
+
+    `points` is `(3, N)`, `mask` `(N,)`. One vmapped reverse-mode pass gives the residual and its
+    gradient with respect to the model-frame point and the shape parameters; the pose columns follow
+    from the chain rule (x' = exp(-dw) (x + du)).
+    """
+    la, e, _, _, d = state
+    x, y, z = _model_frame(state, points)
+    argnums = (0, 1, 2, 3, 4, 5) if opts.deform else (0, 1, 2, 3, 4)
+    vg = jax.vmap(jax.value_and_grad(_residual_point, argnums=argnums), in_axes=(0, 0, 0, None, None, None, None))
+    r, grads = vg(x, y, z, la, e, d, opts.deform)
+    gx, gy, gz, gla, ge = grads[:5]
+    rows = [gla[:, 0], gla[:, 1], gla[:, 2], ge[:, 0], ge[:, 1],
+            gy * z - gz * y, gz * x - gx * z, gx * y - gy * x,        # rotation: g x x
+            gx, gy, gz]                                              # model-frame shift
+    if opts.deform:
+        rows += [grads[5][:, i] for i in range(4)]
     w = mask.astype(points.dtype)
-    r = jnp.where(mask, r, 0.0)
-    J = jnp.concatenate(cols, -1) * w[:, None]
-    J = jnp.where(jnp.isfinite(J), J, 0.0)
-    cost = jnp.sum(r * r)
-    return cost, J.T @ J, J.T @ r
+    J = jnp.stack(rows) * w
+    r = r * w
+    return jnp.sum(r * r), J @ J.T, J @ r
 
 
 def _cost(state, points, mask, opts):
-    la, e, R, t, d = state
-    x = (points - t) @ R
-    r = jax.vmap(_phi, in_axes=(0, None, None, None, None))(x, la, e, d, opts.deform)
+    la, e, _, _, d = state
+    x, y, z = _model_frame(state, points)
+    r = jax.vmap(_residual_point, in_axes=(0, 0, 0, None, None, None, None))(x, y, z, la, e, d, opts.deform)
     return jnp.sum(jnp.where(mask, r * r, 0.0))
+
+
+_LM_LAMBDA0, _LM_DOWN, _LM_UP = 1e-2, 0.3, 4.0
+"""Initial damping (relative to diag J^T J) and its factors after a kept / a rejected step."""
+
+
+def _damped_solve(A, b):
+    """Solve the damped normal equations (symmetric positive definite) by Cholesky; NaN if not PD."""
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), b)
 
 
 def _retract(state, step, opts):
@@ -134,62 +206,146 @@ def _retract(state, step, opts):
     R = R @ so3.exp(step[5:8])
     if opts.deform:
         d = d + step[11:15]
-        d = d.at[0:2].set(jnp.clip(d[0:2], -1.0, 1.0)).at[2].set(jnp.maximum(d[2], 0.0))
+        alpha = jnp.remainder(d[3] + jnp.pi, 2 * jnp.pi) - jnp.pi    # the bending angle is periodic
+        d = jnp.stack([jnp.clip(d[0], -1.0, 1.0), jnp.clip(d[1], -1.0, 1.0), jnp.maximum(d[2], 0.0), alpha])
     return la, e, R, t, d
 
 
 def _levenberg_marquardt(state, points, mask, opts, num_steps):
-    """Fixed-step LM from `state`; returns (state, cost, converged). One residual+Jacobian pass a step."""
+    """Fixed-step LM from `state`; returns (state, cost, converged). One residual+Jacobian pass a step.
+
+    Marquardt's scaling (damping proportional to diag J^T J) makes the step invariant to the units of
+    each parameter; a trial is kept only if it lowers the cost, and the damping falls after a kept step
+    and rises after a rejected one. The loop evaluates a pending trial per iteration (the start itself
+    first, against an infinite cost), so the residual and its Jacobian appear once in the program.
+    """
+    dtype = points.dtype
     P = opts.num_params
-    cost, JTJ, JTr = _normal_equations(state, points, mask, opts)
+    tiny = jnp.finfo(dtype).tiny
 
     def body(_, carry):
-        state, cost, JTJ, JTr, lam, rel = carry
-        diag = jnp.diagonal(JTJ)
-        damp = lam * (diag + 1e-9 * jnp.max(diag) + jnp.finfo(diag.dtype).tiny)
-        step = jnp.linalg.solve(JTJ + jnp.diag(damp), -JTr)
-        step = jnp.where(jnp.isfinite(step), step, 0.0)
-        new = _retract(state, step, opts)
-        ncost, nJTJ, nJTr = _normal_equations(new, points, mask, opts)
+        state, cost, JTJ, JTr, lam, rel, trial = carry
+        ncost, nJTJ, nJTr = _normal_equations(trial, points, mask, opts)
         ok = jnp.isfinite(ncost) & (ncost < cost)
+        rel = jnp.where(ok & jnp.isfinite(cost), (cost - ncost) / jnp.maximum(cost, tiny), jnp.where(ok, 1.0, 0.0))
+        lam = jnp.where(jnp.isfinite(cost), jnp.clip(jnp.where(ok, lam * _LM_DOWN, lam * _LM_UP), 1e-9, 1e9), lam)
         pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(ok, u, v), a, b)  # noqa: E731
-        rel = jnp.where(ok, (cost - ncost) / jnp.maximum(cost, jnp.finfo(cost.dtype).tiny), 0.0)
-        lam = jnp.clip(jnp.where(ok, lam * 0.3, lam * 4.0), 1e-9, 1e9)
-        state, cost, JTJ, JTr = pick((new, ncost, nJTJ, nJTr), (state, cost, JTJ, JTr))
-        return state, cost, JTJ, JTr, lam, rel
+        state, cost, JTJ, JTr = pick((trial, ncost, nJTJ, nJTr), (state, cost, JTJ, JTr))
+        diag = jnp.diagonal(JTJ)
+        damp = lam * (diag + 1e-9 * jnp.max(diag) + tiny)
+        step = _damped_solve(JTJ + jnp.diag(damp), -JTr)
+        step = jnp.where(jnp.isfinite(step), step, 0.0)
+        return state, cost, JTJ, JTr, lam, rel, _retract(state, step, opts)
 
-    init = (state, cost, JTJ, JTr, jnp.asarray(1e-2, points.dtype), jnp.asarray(1.0, points.dtype))
-    state, cost, _, _, lam, rel = jax.lax.fori_loop(0, num_steps, body, init)
-    del P
+    zeros = jnp.zeros((P, P), dtype)
+    init = (state, jnp.asarray(jnp.inf, dtype), zeros, zeros[0], jnp.asarray(_LM_LAMBDA0, dtype),
+            jnp.asarray(1.0, dtype), state)
+    state, cost, _, _, lam, rel, _ = jax.lax.fori_loop(0, num_steps + 1, body, init)
     # Converged: the last steps stopped paying (a rejected step with a large damping, or a tiny gain).
     converged = jnp.isfinite(cost) & ((rel < 1e-4) | (lam > 1e3))
     return state, cost, converged
 
 
 # ----------------------------------------------------------------------------------------------------
-# initial estimates
+# initial estimates (points (3, N) normalised: centroid 0, rms radius 1)
+
+_PERMS = ((0, 1, 2), (1, 2, 0), (2, 0, 1))   # cyclic: the rotation keeps det +1
 
 
-def _moment_candidates(points, mask):
-    """Ellipsoid starts from central second moments: (3, state) for the three choices of the z axis."""
+def _take(x, idx, axis: int = 0):
+    """x gathered at static indices along `axis` (plain slices: no index arrays, any x64 setting)."""
+    return jnp.stack([jnp.take(x, i, axis) for i in idx], axis)
+
+
+def _moment_frame(points, mask):
+    """Centroid, right-handed eigenvectors of the covariance (ascending variance), local coordinates."""
     w = mask.astype(points.dtype)
     n = jnp.maximum(jnp.sum(w), 1.0)
-    c = jnp.sum(points * w[:, None], 0) / n
-    q = (points - c) * w[:, None]
-    cov = q.T @ q / n
-    _, V = jnp.linalg.eigh(cov)
-    V = V * jnp.where(jnp.linalg.det(V) < 0, -1.0, 1.0)          # right-handed
-    local = (points - c) @ V
-    big = jnp.finfo(points.dtype).max / 4
-    lo = jnp.min(jnp.where(mask[:, None], local, big), 0)
-    hi = jnp.max(jnp.where(mask[:, None], local, -big), 0)
-    centre = c + V @ ((lo + hi) / 2)
-    half = jnp.maximum((hi - lo) / 2, 1e-3 * jnp.max(hi - lo) + jnp.finfo(points.dtype).eps)
-    perms = jnp.array([[0, 1, 2], [1, 2, 0], [2, 0, 1]])          # cyclic: det stays +1
-    Rs = V[:, perms].transpose(1, 0, 2)
-    la = jnp.log(half[perms])
-    e = jnp.ones((3, 2), points.dtype)
-    return la, e, Rs, jnp.broadcast_to(centre, (3, 3)), jnp.zeros((3, 4), points.dtype)
+    c = jnp.sum(points * w, 1) / n
+    q = (points - c[:, None]) * w
+    _, V = jnp.linalg.eigh(q @ q.T / n)
+    V = V * jnp.where(jnp.linalg.det(V) < 0, -1.0, 1.0)
+    return c, V, V.T @ (points - c[:, None])
+
+
+def _extent(local, mask):
+    big = jnp.finfo(local.dtype).max / 4
+    lo = jnp.min(jnp.where(mask, local, big), 1)
+    hi = jnp.max(jnp.where(mask, local, -big), 1)
+    return lo, hi
+
+
+def _three(centre, V, half, dtype):
+    """The three axis assignments (which eigenvector becomes the model z axis) of one ellipsoid start."""
+    half = jnp.maximum(half, 1e-3 * jnp.max(half) + jnp.finfo(dtype).eps)
+    return (jnp.stack([jnp.log(_take(half, p)) for p in _PERMS]), jnp.ones((3, 2), dtype),
+            jnp.stack([_take(V, p, 1) for p in _PERMS]),
+            jnp.broadcast_to(centre, (3, 3)), jnp.zeros((3, 4), dtype))
+
+
+def _moment_starts(points, mask):
+    """The paper's start: the ellipsoid of the bounding box in the frame of the central second moments."""
+    c, V, local = _moment_frame(points, mask)
+    lo, hi = _extent(local, mask)
+    return _three(c + V @ ((lo + hi) / 2), V, (hi - lo) / 2, points.dtype)
+
+
+def _rim_starts(points, mask):
+    """One-view start: the visible surface is the front half, so the centre lies at its rim.
+
+    Along the least-spread moment axis (the viewing direction for a half shell) the rim points lie
+    behind the apex; the sign comes from the covariance of that coordinate with the squared distance
+    from the axis. The centre is put at the rim end and the size along that axis is the full extent.
+    """
+    c, V, local = _moment_frame(points, mask)
+    lo, hi = _extent(local, mask)
+    w = mask.astype(points.dtype)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    u = local[0]
+    rho2 = local[1] ** 2 + local[2] ** 2
+    cov = jnp.sum(w * (u - jnp.sum(w * u) / n) * (rho2 - jnp.sum(w * rho2) / n))
+    mid = ((lo + hi) / 2).at[0].set(jnp.where(cov > 0, hi[0], lo[0]))
+    half = ((hi - lo) / 2).at[0].set(hi[0] - lo[0])
+    return _three(c + V @ mid, V, half, points.dtype)
+
+
+def _quadric_starts(points, mask):
+    """Centre and axes of the algebraic least-squares quadric x^T M x + 2 g^T x = 1 when it is an ellipsoid.
+
+    Uses the curvature of a partial view, which moments cannot; half-sizes are the extents of the points
+    about that centre. Falls back to the moment start where the quadric is not a bounded ellipsoid.
+    """
+    dtype = points.dtype
+    w = mask.astype(dtype)
+    x, y, z = points
+    D = jnp.stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z]) * w
+    A = D @ D.T
+    A = A + (1e-6 * jnp.trace(A) / 9 + jnp.finfo(dtype).tiny) * jnp.eye(9, dtype=dtype)
+    v = jnp.linalg.solve(A, D @ w)
+    M = jnp.stack([jnp.stack([v[0], v[3], v[4]]), jnp.stack([v[3], v[1], v[5]]), jnp.stack([v[4], v[5], v[2]])])
+    lam, V = jnp.linalg.eigh(M)
+    V = V * jnp.where(jnp.linalg.det(V) < 0, -1.0, 1.0)
+    c = -(V @ ((V.T @ v[6:9]) / jnp.where(lam > 0, lam, 1.0)))
+    ok = (lam[0] > 1e-3 * lam[2]) & jnp.all(jnp.isfinite(c)) & (jnp.sum(c * c) < 9.0)
+    local = jnp.abs(V.T @ (points - c[:, None]))
+    half = jnp.max(jnp.where(mask, local, 0.0), 1)
+    quad = _three(c, V, half, dtype)
+    moment = _moment_starts(points, mask)
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), quad, moment)
+
+
+_START_FNS = {"moments": _moment_starts, "rim": _rim_starts, "quadric": _quadric_starts}
+
+
+def _initial_states(points, mask, opts):
+    """All first-stage candidates, stacked: (C, ...) with C = 3 * len(starts) * len(epsilon_starts)."""
+    families = [_START_FNS[name](points, mask) for name in opts.starts]
+    base = jax.tree.map(lambda *a: jnp.concatenate(a), *families)
+    out = []
+    for e1, e2 in opts.epsilon_starts:
+        la, e, R, t, d = base
+        out.append((la, jnp.broadcast_to(jnp.asarray([e1, e2], points.dtype), e.shape), R, t, d))
+    return jax.tree.map(lambda *a: jnp.concatenate(a), *out)
 
 
 def _switched(state):
@@ -198,38 +354,58 @@ def _switched(state):
     # x -> z: columns (z, y, -x); y -> z: columns (x, z, -y); sizes follow, exponents swap.
     Rx = jnp.stack([R[:, 2], R[:, 1], -R[:, 0]], 1)
     Ry = jnp.stack([R[:, 0], R[:, 2], -R[:, 1]], 1)
-    las = jnp.stack([la[jnp.array([2, 1, 0])], la[jnp.array([0, 2, 1])]])
+    las = jnp.stack([_take(la, (2, 1, 0)), _take(la, (0, 2, 1))])
     es = jnp.stack([e[::-1], e[::-1]])
     return las, es, jnp.stack([Rx, Ry]), jnp.stack([t, t]), jnp.stack([d, d])
 
 
-def _best(states, costs):
+def _best(states, costs, convs):
     i = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
-    return jax.tree.map(lambda v: v[i], states), i
+    return jax.tree.map(lambda v: v[i], states), costs[i], convs[i]
 
 
 # ----------------------------------------------------------------------------------------------------
 # one problem, normalised coordinates, with implicit differentiation
 
 
+def _subsample(points, mask, n: int):
+    """`n` of the valid points, evenly strided through them in their given order: (3, n), (n,).
+
+    All of them (and padding) when there are at most `n`. Used to screen the starting candidates.
+    """
+    order = jnp.argsort(~mask, stable=True)          # valid points first, order kept
+    nv = jnp.sum(mask)
+    i = jnp.arange(n)
+    j = jnp.where(nv <= n, i, (i * nv) // n)
+    idx = order[j]
+    return points[:, idx], mask[idx] & (j < nv)
+
+
+def _multistart(points, mask, opts):
+    """Every start for `max_steps` and the two switched forms of the best for half as many, on a
+    subsample of `screen_points`; then the winner for `max_steps // 2` more on all the points."""
+    N = points.shape[1]
+    n_sub = N if opts.screen_points is None else min(N, opts.screen_points)
+    sub_pts, sub_mask = _subsample(points, mask, n_sub) if n_sub < N else (points, mask)
+    lm = lambda n: jax.vmap(lambda s: _levenberg_marquardt(s, sub_pts, sub_mask, opts, n))  # noqa: E731
+    half = max(opts.max_steps // 2, 1)
+    best = _best(*lm(opts.max_steps)(_initial_states(points, mask, opts)))
+    second = lm(half)(_switched(best[0]))
+    best = _best(*jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), best, second))
+    if n_sub == N:
+        return best
+    return _levenberg_marquardt(best[0], points, mask, opts, half)
+
+
 def _solve(inputs):
     points, mask, theta0, opts, _ = inputs   # the adjoint appends a while-loop implementation
-    lm = jax.vmap(lambda s: _levenberg_marquardt(s, points, mask, opts, opts.max_steps))
     if theta0 is not None:
         state, cost, conv = _levenberg_marquardt(_split(theta0, opts), points, mask, opts, opts.max_steps)
     elif opts.multistart:
-        states, costs, convs = lm(_moment_candidates(points, mask))
-        best, i = _best(states, costs)
-        states2, costs2, convs2 = jax.vmap(
-            lambda s: _levenberg_marquardt(s, points, mask, opts, max(opts.max_steps // 2, 1)))(_switched(best))
-        allstates = jax.tree.map(lambda a, b: jnp.concatenate([a[i][None], b]), states, states2)
-        allcosts = jnp.concatenate([costs[i][None], costs2])
-        allconv = jnp.concatenate([convs[i][None], convs2])
-        state, j = _best(allstates, allcosts)
-        cost, conv = allcosts[j], allconv[j]
+        state, cost, conv = _multistart(points, mask, opts)
     else:
-        cands = _moment_candidates(points, mask)
-        state, cost, conv = _levenberg_marquardt(jax.tree.map(lambda v: v[0], cands), points, mask, opts, opts.max_steps)
+        first = jax.tree.map(lambda v: v[0], _moment_starts(points, mask))
+        state, cost, conv = _levenberg_marquardt(first, points, mask, opts, opts.max_steps)
     return _join(*state, opts), (cost, conv)
 
 
@@ -249,7 +425,7 @@ def _fit_one(points, mask, theta0, opts: FitOptions):
     centred = jnp.where(mask[:, None], points - centre, 0.0)
     scale = jnp.sqrt(jnp.sum(centred * centred) / n + jnp.finfo(dtype).tiny)
     scale = jnp.where(scale > 0, scale, 1.0)
-    pn = centred / scale
+    pn = (centred / scale).T
     if theta0 is not None:   # original units -> normalised chart
         theta0 = theta0.at[0:3].add(-jnp.log(scale)).at[8:11].set((theta0[8:11] - centre) / scale)
         if opts.deform:
@@ -265,14 +441,47 @@ def _fit_one(points, mask, theta0, opts: FitOptions):
     return theta, cost, conv, dist
 
 
+_CHUNK_POINTS = 4096
+"""On CPU, problems are fitted `max(1, _CHUNK_POINTS // N)` at a time (all candidates side by side)."""
+
+
+def _map_problems(points, mask, theta0, opts):
+    """`_fit_one` over the leading axis: one vmap on accelerators; on CPU a loop over small chunks.
+
+    A chunk's points and every intermediate of its LM steps then stay in cache, which on CPU is worth
+    more than the width of one huge vmap.
+    """
+    K, N = points.shape[:2]
+    if jax.default_backend() != "cpu":
+        return jax.vmap(_fit_one, in_axes=(0, 0, None if theta0 is None else 0, None))(points, mask, theta0, opts)
+    chunk = min(K, max(1, _CHUNK_POINTS // N))
+    return jax.lax.map(lambda a: _fit_one(a[0], a[1], a[2], opts), (points, mask, theta0), batch_size=chunk)
+
+
 @eqx.filter_jit
 def fit_padded(points, mask, theta0, opts: FitOptions):
     """The batch kernel: points (K, N, 3), mask (K, N), theta0 (K, P) or None -> theta, cost, converged, distance.
 
-    One compiled call per (K, N, dtype, options); `fit` pads to power-of-two buckets to keep that set small.
+    One compiled call per (K, N, dtype, options); `fit` pads to power-of-two buckets to keep that set
+    small. `theta` is the global chart [log a, e, rotation vector, t, (Kx, Ky, k, alpha)].
     """
-    in_axes = (0, 0, None if theta0 is None else 0, None)
-    return jax.vmap(_fit_one, in_axes=in_axes)(points, mask, theta0, opts)
+    return _map_problems(points, mask, theta0, opts)
+
+
+@eqx.filter_jit
+def _fit_sharded(points, mask, theta0, opts: FitOptions):
+    """`fit_padded` with the problems split over every local CPU device (one `shard_map` block each)."""
+    mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
+    spec = jax.sharding.PartitionSpec("k")
+    body = lambda p, m, t: _map_problems(p, m, t, opts)  # noqa: E731
+    return jax.shard_map(body, mesh=mesh, in_specs=(spec, spec, None if theta0 is None else spec),
+                         out_specs=spec, check_vma=False)(points, mask, theta0)
+
+
+def _use_devices(K: int) -> bool:
+    """Several local CPU devices (`XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`) dividing K."""
+    devices = jax.local_devices()
+    return len(devices) > 1 and K % len(devices) == 0 and devices[0].platform == "cpu"
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -297,23 +506,26 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     - `points`: `(N, 3)` or `(K, N, 3)` coordinates (any length unit). Rows that are NaN/inf, or
       masked out, are ignored (missing data).
     - `mask`: `(N,)` / `(K, N)` bool, True for points to use. Default: all finite rows.
-    - `init`: warm start (a `Superquadric`, batched like the problems); skips the moment starts.
-    - `options`: a `FitOptions`; keyword arguments (`max_steps=`, `multistart=`, `deform=`) build one.
+    - `init`: warm start (a `Superquadric`, batched like the problems); skips the multistart.
+    - `options`: a `FitOptions`; or keyword arguments (`max_steps=`, `multistart=`, `deform=`, ...)
+      that build one.
     - `dtype`: `jnp.float32` (default) or `jnp.float64` (needs `jax.config.update("jax_enable_x64", True)`).
 
     **Returns:** a `Fit` (parameters, cost, per-point distances `(K, N)`, converged flags).
 
-    Differentiable with respect to `points` (implicit differentiation at the optimum).
+    Differentiable with respect to `points` (implicit differentiation at the optimum). When JAX has
+    several CPU devices (`XLA_FLAGS=--xla_force_host_platform_device_count=2`) and they divide the padded
+    batch, the problems are split between them (same kernel per problem, so the same results).
     """
+    if options is not None and kw:
+        raise TypeError(f"fit: pass either options= or keyword options, not both (got {sorted(kw)})")
     options = options if options is not None else FitOptions(**kw)
-    if kw and options is not None and "options" in kw:
-        raise TypeError("fit: pass either options= or keyword options, not both")
-    dtype = jnp.dtype(dtype or (points.dtype if _is_traced(points) else jnp.float32))
-    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
-        raise ValueError("fit: float64 requested but JAX x64 is off; call jax.config.update('jax_enable_x64', True)")
+    traced = _is_traced(points)
+    dtype = jnp.dtype(dtype or (points.dtype if traced else jnp.float32))
     if dtype not in (jnp.float32, jnp.float64):
         raise ValueError(f"fit: dtype must be float32 or float64, got {dtype}")
-    traced = _is_traced(points)
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+        raise ValueError("fit: float64 requested but JAX x64 is off; call jax.config.update('jax_enable_x64', True)")
     if not traced:
         points = np.asarray(points)
         if not np.issubdtype(points.dtype, np.number):
@@ -327,17 +539,20 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     if K == 0 or N == 0:
         raise ValueError(f"fit: empty point set, shape {tuple(points.shape)}")
     if mask is not None:
-        mask = np.asarray(mask, bool) if not _is_traced(mask) else mask
-        mask = mask[None] if mask.ndim == 1 and single else mask
+        mask = np.asarray(mask).astype(bool) if not _is_traced(mask) else mask.astype(bool)
+        mask = mask[None] if single else mask
         if tuple(mask.shape) != (K, N):
-            raise ValueError(f"fit: mask shape {tuple(mask.shape)} does not match points {(K, N) if not single else (N,)}")
+            expected = (N,) if single else (K, N)
+            got = tuple(mask.shape[1:]) if single else tuple(mask.shape)
+            raise ValueError(f"fit: mask shape {got} does not match the points, expected {expected}")
     if not traced:
         finite = np.isfinite(points).all(-1)
         mask = finite if mask is None else (np.asarray(mask) & finite)
         counts = mask.sum(-1)
         bad = np.nonzero(counts < MIN_POINTS)[0]
         if bad.size:
-            raise ValueError(f"fit: too few valid points: problem {int(bad[0])} has {int(counts[bad[0]])}, "
+            which = "" if single else f"problem {int(bad[0])} has "
+            raise ValueError(f"fit: too few valid (finite, unmasked) points: {which}{int(counts[bad[0]])}, "
                              f"at least {MIN_POINTS} are needed (one per parameter)")
         points = np.where(mask[..., None], points, 0.0)
     elif mask is None:
@@ -352,12 +567,16 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
         sq = jax.tree.map(lambda v: v[None], sq) if sq.size.ndim == 1 else sq
         theta0 = jnp.concatenate([jnp.log(sq.size), sq.epsilon, so3.log(sq.rotation), sq.translation]
                                  + ([sq.taper, sq.bend] if options.deform else []), -1)
+        if theta0.shape[0] not in (1, K):
+            raise ValueError(f"fit: init holds {theta0.shape[0]} models for {K} problems")
         theta0 = jnp.broadcast_to(theta0, (K, theta0.shape[-1]))
     if Kb > K:   # pad the batch with copies of problem 0, dropped below
         rep = lambda v: jnp.concatenate([v, jnp.repeat(v[:1], Kb - K, 0)])  # noqa: E731
         pts, msk = rep(pts), rep(msk)
         theta0 = None if theta0 is None else rep(theta0)
-    theta, cost, conv, dist = fit_padded(pts, msk, theta0, options)
+    host = not (traced or _is_traced(msk) or _is_traced(theta0))
+    kernel = _fit_sharded if host and _use_devices(Kb) else fit_padded
+    theta, cost, conv, dist = kernel(pts, msk, theta0, options)
     sq = to_superquadric(theta[:K], options)
     out = Fit(sq, cost[:K], dist[:K, :N], conv[:K], jnp.sum(msk[:K], -1))
     return jax.tree.map(lambda v: v[0], out) if single else out

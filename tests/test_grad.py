@@ -1,0 +1,85 @@
+"""Derivatives of fitted parameters with respect to the points (implicit function theorem at the optimum)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sqjax import Superquadric, sample_surface
+from sqjax.fitting import FitOptions, fit
+
+TRUTH = dict(size=(1.0, 0.7, 1.3), epsilon=(0.6, 1.3), euler=(0.3, 1.1, -0.8), translation=(0.2, -0.1, 0.4))
+TIGHT = FitOptions(max_steps=40, multistart=False)   # from a warm start: converged to rounding in float64
+
+
+def _points(n=60, seed=0, noise=0.02):
+    sq = Superquadric.create(**TRUTH)
+    return sample_surface(sq, n, seed=seed, noise=noise)
+
+
+def _fitted(points):
+    """(size, translation, epsilon) of the tight fit from the truth, as one vector (8,)."""
+    init = Superquadric.create(**TRUTH, dtype=points.dtype)
+    sq = fit(points, init=init, options=TIGHT).superquadric
+    return jnp.concatenate([sq.size, sq.translation, sq.epsilon])
+
+
+_fitted_jit = jax.jit(_fitted)
+_jvp_jit = jax.jit(lambda q, t: jax.jvp(_fitted, (q,), (t,)))
+
+
+@pytest.fixture(scope="module")
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def test_jvp_matches_finite_differences_of_refits(x64):
+    p = jnp.asarray(_points(), jnp.float64)
+    rng = np.random.default_rng(1)
+    fitted = _fitted_jit
+    theta = np.asarray(fitted(p))
+    assert np.all(theta[6:] > 0.15) and np.all(theta[6:] < 1.85)    # exponents inside the bounds
+    h = 1e-5
+    for _ in range(2):
+        v = jnp.asarray(rng.standard_normal(p.shape))
+        _, tangent = _jvp_jit(p, v)
+        fd = (np.asarray(fitted(p + h * v)) - np.asarray(fitted(p - h * v))) / (2 * h)
+        err = np.linalg.norm(np.asarray(tangent) - fd) / np.linalg.norm(fd)
+        assert err < 1e-3, (err, np.asarray(tangent), fd)
+
+
+def test_reverse_mode_matches_forward_mode(x64):
+    p = jnp.asarray(_points(seed=2), jnp.float64)
+    rng = np.random.default_rng(3)
+    w = jnp.asarray(rng.standard_normal(8))
+    v = jnp.asarray(rng.standard_normal(p.shape))
+    grad = jax.jit(jax.grad(lambda q: jnp.dot(w, _fitted(q))))(p)          # reverse: one VJP
+    _, tangent = _jvp_jit(p, v)                                            # forward: one JVP
+    assert float(jnp.sum(grad * v)) == pytest.approx(float(jnp.dot(w, tangent)), rel=1e-8)
+
+
+def test_grad_of_loss_under_jit_and_vmap():
+    """A warm-started float32 fit (as in a differentiable pipeline) inside jit(vmap(grad(...))): finite,
+    and the exact identities of an equivariant fit: d size / d(scaling) = size, d centre / d(shift) = I.
+
+    The derivative comes from the optimality condition alone, so it is the same for every way of
+    finding the optimum (multistart or warm start)."""
+    pts = jnp.asarray(np.stack([_points(n=100, seed=s, noise=0.01) for s in (4, 5)]), jnp.float32)
+
+    w = jnp.array([1.0, 2.0, 3.0, 0.5, -1.0, 1.5])
+
+    init = Superquadric.create(**TRUTH)
+
+    def loss(q):
+        sq = fit(q, init=init, max_steps=15, multistart=False).superquadric
+        out = jnp.concatenate([sq.size, sq.translation])
+        return jnp.dot(w, out), out
+
+    (values, out), grads = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))(pts)
+    assert grads.shape == pts.shape and bool(jnp.all(jnp.isfinite(grads)))
+    for k in range(2):
+        # scaling the points about the origin scales sizes and centre: grad . p = loss
+        assert float(jnp.sum(grads[k] * pts[k])) == pytest.approx(float(values[k]), rel=2e-3)
+        # shifting all points by c shifts the centre by c: sum over points of d loss / d p = w_centre
+        assert np.allclose(np.asarray(jnp.sum(grads[k], 0)), np.asarray(w[3:]), atol=2e-3)
