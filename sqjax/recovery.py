@@ -2,8 +2,9 @@
 
 Host orchestration in numpy around jit-compiled batch kernels: the refits of all active hypotheses at
 a growth step (`fitting.fit_padded`, warm-started) and the distances of every data point to every
-active model (`_distances`). Kernels are called on fixed chunks of `_CHUNK` hypotheses and padded
-point counts, so a growth step never recompiles.
+active model (`_distances`). Each is one call per growth step over all active hypotheses, their
+number padded to a few fixed batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a
+growth step recompiles only when the hypotheses first reach a new bucket.
 """
 
 from __future__ import annotations
@@ -25,7 +26,15 @@ if TYPE_CHECKING:
     from .segment import SegmentOptions
 
 NUM_PARAMS = 11
-_CHUNK = 32   # hypotheses per kernel call: fixed, so the kernels compile once
+_CHUNK = 32   # hypotheses evaluated side by side inside the distance kernel (bounds its memory)
+
+
+def batch_bucket(k: int) -> int:
+    """Padded number of hypotheses for k: 32, 48, 64, 96, 128, 192, ... (at most 1/3 wasted)."""
+    b = 32
+    while b < k:
+        b = b * 3 // 2 if b & (b - 1) == 0 else b * 4 // 3
+    return b
 
 
 @dataclasses.dataclass
@@ -160,7 +169,7 @@ def _distances(theta, points, enlarge, margin):
         d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
         big, _ = _log_f_and_grad(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
         return d, big <= 0.0
-    return jax.vmap(one)(theta)
+    return jax.lax.map(one, theta, batch_size=_CHUNK)
 
 
 def _pad_rows(a, n, fill):
@@ -196,41 +205,33 @@ class _Runner:
         self.margin = 2.0 * self.tau
 
     def distances(self, theta):
-        """(K, 11) -> eq. 10 distances (K, P) and inside-the-enlarged-model (K, P), in fixed-size chunks."""
+        """(K, 11) -> eq. 10 distances (K, P) and inside-the-enlarged-model (K, P): one kernel call."""
         K = theta.shape[0]
-        ds, ins = [], []
-        for s in range(0, K, _CHUNK):
-            th = _pad_rows(theta[s : s + _CHUNK], _CHUNK, theta[s])
-            d, inside = _distances(jnp.asarray(th, self.dtype), self.points,
-                                   jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
-            ds.append(np.asarray(d)[:, : self.P])
-            ins.append(np.asarray(inside)[:, : self.P])
-        return np.concatenate(ds)[:K].astype(np.float64), np.concatenate(ins)[:K]
+        th = _pad_rows(theta, batch_bucket(K), theta[0])
+        d, inside = _distances(jnp.asarray(th, self.dtype), self.points,
+                               jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
+        return np.asarray(d)[:K, : self.P].astype(np.float64), np.asarray(inside)[:K, : self.P]
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None.
 
-        Calls the kernel on fixed (chunk, max_points) shapes: one compilation serves every step.
+        One call of the batch kernel for all K regions, padded to (`batch_bucket(K)`, max_points).
         """
         K = len(regions)
         cap = self.opts.max_points
-        N = bucket(cap, 32)
+        N, Kb = bucket(cap, 32), batch_bucket(K)
         opts = FitOptions(max_steps=steps, multistart=theta0 is None)
-        out = []
-        for s in range(0, K, _CHUNK):
-            pts = np.zeros((_CHUNK, N, 3))
-            msk = np.zeros((_CHUNK, N), bool)
-            for i in range(_CHUNK):
-                r = regions[min(s + i, K - 1)]
-                if r.size > cap:
-                    r = r[np.linspace(0, r.size - 1, cap).astype(np.int64)]
-                pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
-            th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0[s : s + _CHUNK], _CHUNK, theta0[s]),
-                                                          self.dtype)
-            theta, _, _, _ = fit_padded(jnp.asarray(pts, self.dtype), jnp.asarray(msk), th0, opts)
-            out.append(np.asarray(theta))
-        theta = np.concatenate(out)[:K].astype(np.float64)
+        pts = np.zeros((Kb, N, 3))
+        msk = np.zeros((Kb, N), bool)
+        for i in range(Kb):
+            r = regions[i if i < K else 0]
+            if r.size > cap:
+                r = r[np.linspace(0, r.size - 1, cap).astype(np.int64)]
+            pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
+        th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0, Kb, theta0[0]), self.dtype)
+        theta, _, _, _ = fit_padded(jnp.asarray(pts, self.dtype), jnp.asarray(msk), th0, opts)
+        theta = np.asarray(theta)[:K].astype(np.float64)
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 
 

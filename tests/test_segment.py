@@ -91,3 +91,25 @@ def test_degenerate_images_get_a_clear_error(depth, message):
 def test_bad_input_type():
     with pytest.raises(ValueError, match="RangeImage or an"):
         segment(np.zeros((5, 4)))
+
+
+def test_one_kernel_call_per_growth_step_on_bucketed_shapes(monkeypatch):
+    """All active hypotheses are refitted by one call of the batch kernel per growth step, and the
+    batch sizes come from the few fixed buckets (so steps do not recompile)."""
+    from sqjax import recovery
+
+    calls = []
+    real = recovery.fit_padded
+
+    def record(points, mask, theta0, opts):
+        calls.append((points.shape, theta0 is None))
+        return real(points, mask, theta0, opts)
+
+    monkeypatch.setattr(recovery, "fit_padded", record)
+    image, _ = paper_scene("two_cylinders", noise=0.002)
+    seg = segment(image, merge=False)
+    buckets = {recovery.batch_bucket(k) for k in range(1, 4097)}
+    assert all(shape[0] in buckets and shape[1] == 512 for shape, _ in calls)
+    seed_calls = 3                               # the three starts of every seed, each one batch
+    assert len(calls) <= seed_calls + seg.stats["growth_steps"]
+    assert len({shape for shape, _ in calls}) <= 6
