@@ -205,12 +205,12 @@ class _Runner:
         self.margin = 2.0 * self.tau
 
     def distances(self, theta):
-        """(K, 11) -> eq. 10 distances (K, P) and inside-the-enlarged-model (K, P): one kernel call."""
+        """(K, 11) -> eq. 10 distances (K, P) float32 and inside-the-enlarged-model (K, P): one kernel call."""
         K = theta.shape[0]
         th = _pad_rows(theta, batch_bucket(K), theta[0])
         d, inside = _distances(jnp.asarray(th, self.dtype), self.points,
                                jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
-        return np.asarray(d)[:K, : self.P].astype(np.float64), np.asarray(inside)[:K, : self.P]
+        return np.asarray(d)[:K, : self.P], np.asarray(inside)[:K, : self.P]
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
@@ -236,11 +236,14 @@ class _Runner:
 
 
 def _dilate(regions, neighbours, rings):
+    """Regions (M, P) grown by `rings` steps along the adjacency (P, k); (M, P) temporaries only."""
+    cols = [(np.where(nb >= 0, nb, 0), nb >= 0) for nb in neighbours.T]
     out = regions
     for _ in range(rings):
-        nb = np.where(neighbours >= 0, neighbours, 0)
-        hit = out[:, nb] & (neighbours >= 0)[None]
-        out = out | hit.any(-1)
+        step = out.copy()
+        for nb, ok in cols:
+            step |= out[:, nb] & ok
+        out = step
     return out
 
 
@@ -296,18 +299,18 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
         score = np.array([np.mean(d[i, r] < run.tau) - 1e-3 * np.sqrt(np.mean(np.minimum(d[i, r], 1e3) ** 2))
                           / run.tau if ok[i] else -np.inf for i, r in enumerate(regions)])
         if best is None:
-            best = [theta, d, inside, score]
+            best = [theta, np.array(d), np.array(inside), score]   # own, writable copies
         else:
             better = score > best[3]
             for j, new in enumerate((theta, d, inside, score)):
-                best[j] = np.where(better.reshape((-1,) + (1,) * (new.ndim - 1)), new, best[j])
+                best[j][better] = new[better]        # in place: these are (K, P) arrays
     return best[0], best[1], best[2], best[3]
 
 
 def _seed(run: _Runner, opts: SegmentOptions):
     dom = run.dom
     if not dom.seeds:
-        return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), np.zeros((0, run.P)),
+        return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), np.zeros((0, run.P), np.float32),
                        np.zeros((0, run.P), bool))
     theta, d, inside, score = _fit_best(run, dom.seeds, opts.fit_steps)
     if opts.adaptive_noise and opts.noise is None and opts.threshold is None:
