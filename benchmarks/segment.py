@@ -3,6 +3,7 @@
     python benchmarks/segment.py                 # 50 synthetic scenes + every mOSD scene (~10 min, 2 cores)
     python benchmarks/segment.py --quick         # 8 synthetic scenes + 3 mOSD scenes
     python benchmarks/segment.py --out benchmarks/out/segment.json
+    python benchmarks/segment.py --figures benchmarks/figures   # also the figure sequence of each mOSD scene
 
 Scores: Hoover et al. (1996) instance classification at T = 0.8 (correct, over-, under-segmentation,
 missed, noise), parts found vs truth, fraction of valid pixels explained within the threshold (eq. 10
@@ -38,8 +39,10 @@ def peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20   # ru_maxrss is KiB on Linux
 
 
-def run_scene(image, truth_labels, options):
+def run_scene(image, truth_labels, options, figure=None):
     seg = sqjax.segment(image, **options)
+    if figure is not None:
+        sqjax.figure_sequence(image, seg, figure, title=Path(figure).stem, dpi=60)
     score = hoover(truth_labels, seg.labels, tolerance=0.8)
     dist = model_distances(image.points, seg.labels, [p.superquadric for p in seg.parts])
     expl = explained_fraction(image.valid & (truth_labels > 0), seg.labels, dist, seg.threshold)
@@ -79,6 +82,7 @@ def main(argv=None):
     ap.add_argument("--scenes", type=int, default=50)
     ap.add_argument("--mosd-step", type=int, default=4)
     ap.add_argument("--out", default="benchmarks/out/segment.json")
+    ap.add_argument("--figures", default=None, help="folder for one figure_sequence PNG per mOSD scene")
     args = ap.parse_args(argv)
     n_syn = 8 if args.quick else args.scenes
 
@@ -101,7 +105,10 @@ def main(argv=None):
         mrows = []
         for f in files:
             image = sqjax.read_range_image(f).subsample(args.mosd_step)
-            mrows.append({"scene": Path(f).name, **run_scene(image, mosd_truth(image.labels), {})})
+            fig = None if args.figures is None else Path(args.figures) / f"mosd_{Path(f).stem}.png"
+            if fig is not None:
+                fig.parent.mkdir(parents=True, exist_ok=True)
+            mrows.append({"scene": Path(f).name, **run_scene(image, mosd_truth(image.labels), {}, fig)})
             _progress("mosd", mrows[-1])
         results["mosd"] = {"rows": mrows, "summary": summarise(mrows), "step": args.mosd_step}
     else:
