@@ -62,6 +62,7 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import sqjax  # noqa: E402
+from machine import cpu_name  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from sqjax.fitting import FitOptions  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)   # float64 rows; float32 stays the default of fit()
@@ -209,7 +210,7 @@ def time_sqjax(points, options: FitOptions, dtype, budget: float):
 
 def main():
     args = ARGS or _parse([])
-    results = {"machine": {"cpu": _cpu(), "cores": os.cpu_count(), "jax_devices": len(jax.local_devices()),
+    results = {"machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "jax_devices": len(jax.local_devices()),
                            "python": platform.python_version(), "jax": jax.__version__,
                            "backend": jax.default_backend()},
                "command": "python " + " ".join([sys.argv[0]] + sys.argv[1:]), "date": time.strftime("%Y-%m-%d"),
@@ -261,16 +262,6 @@ def main():
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1))
     print(f"wrote {args.out}")
-
-
-def _cpu():
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import sqjax
+from machine import cpu_name  # benchmarks/ is on sys.path when run as a script
 from sqjax.evaluate import explained_fraction, hoover, model_distances
 
 DATA = Path(os.environ.get("SQJAX_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -86,7 +87,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     n_syn = 8 if args.quick else args.scenes
 
-    results = {"machine": {"cpu": _cpu(), "cores": os.cpu_count(), "python": platform.python_version(),
+    results = {"machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
                            "jax": __import__("jax").__version__},
                "command": "python benchmarks/segment.py" + (" --quick" if args.quick else ""),
                "date": time.strftime("%Y-%m-%d")}
@@ -135,16 +136,6 @@ def _progress(kind, r):
     print(f"{kind:9s} {r['scene']:14s} truth {r['truth_parts']} found {r['found_parts']} "
           f"C/O/U/M/N {r['correct']}/{r['over']}/{r['under']}/{r['missed']}/{r['noise']} "
           f"explained {r['explained']:.2f} run {r['run_seconds']:.2f}s compile {r['compile_seconds']:.1f}s", flush=True)
-
-
-def _cpu():
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 if __name__ == "__main__":
