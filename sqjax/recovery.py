@@ -2,9 +2,10 @@
 
 Host orchestration in numpy around jit-compiled batch kernels: the refits of all active hypotheses at
 a growth step (`fitting.fit_padded`, warm-started) and the distances of every data point to every
-active model (`_distances`). Each is one call per growth step over all active hypotheses, their
+active model (`_distances`). The refit is one call per growth step over all active hypotheses, their
 number padded to a few fixed batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a
-growth step recompiles only when the hypotheses first reach a new bucket.
+growth step recompiles only when the hypotheses first reach a new bucket; the distances go out in
+fixed chunks of `_CHUNK` hypotheses (one compiled shape).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ if TYPE_CHECKING:
     from .segment import SegmentOptions
 
 NUM_PARAMS = 11
-_CHUNK = 32   # hypotheses evaluated side by side inside the distance kernel (bounds its memory)
+_CHUNK = 32   # hypotheses per call of the distance kernel (one compiled shape, bounded memory)
 
 
 def batch_bucket(k: int) -> int:
@@ -169,7 +170,7 @@ def _distances(theta, points, enlarge, margin):
         d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
         big, _ = _log_f_and_grad(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
         return d, big <= 0.0
-    return jax.lax.map(one, theta, batch_size=_CHUNK)
+    return jax.vmap(one)(theta)
 
 
 def _pad_rows(a, n, fill):
@@ -205,12 +206,18 @@ class _Runner:
         self.margin = 2.0 * self.tau
 
     def distances(self, theta):
-        """(K, 11) -> eq. 10 distances (K, P) float32 and inside-the-enlarged-model (K, P): one kernel call."""
+        """(K, 11) -> eq. 10 distances (K, P) float32 and inside-the-enlarged-model (K, P).
+
+        Dispatched as fixed chunks of `_CHUNK` hypotheses, all queued before any is read back: on
+        CPU this is ~2x faster than one call that loops over the chunks inside XLA (`lax.map`).
+        """
         K = theta.shape[0]
-        th = _pad_rows(theta, batch_bucket(K), theta[0])
-        d, inside = _distances(jnp.asarray(th, self.dtype), self.points,
-                               jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
-        return np.asarray(d)[:K, : self.P], np.asarray(inside)[:K, : self.P]
+        args = (self.points, jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
+        outs = [_distances(jnp.asarray(_pad_rows(theta[s : s + _CHUNK], _CHUNK, theta[s]), self.dtype), *args)
+                for s in range(0, K, _CHUNK)]
+        d = np.concatenate([np.asarray(o[0])[:, : self.P] for o in outs])[:K]
+        inside = np.concatenate([np.asarray(o[1])[:, : self.P] for o in outs])[:K]
+        return d, inside
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
@@ -224,11 +231,11 @@ class _Runner:
         opts = FitOptions(max_steps=steps, multistart=theta0 is None)
         pts = np.zeros((Kb, N, 3))
         msk = np.zeros((Kb, N), bool)
-        for i in range(Kb):
-            r = regions[i if i < K else 0]
+        for i, r in enumerate(regions):
             if r.size > cap:
                 r = r[np.linspace(0, r.size - 1, cap).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
+        pts[K:], msk[K:] = pts[0], msk[0]          # padding rows: copies of the first problem
         th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0, Kb, theta0[0]), self.dtype)
         theta, _, _, _ = fit_padded(jnp.asarray(pts, self.dtype), jnp.asarray(msk), th0, opts)
         theta = np.asarray(theta)[:K].astype(np.float64)
