@@ -19,10 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
-from .fitting import FitOptions, bucket, fit_padded, to_superquadric
+from .fitting import FitOptions, bucket, fit_padded
 from .rangeimage import RangeImage
-from .superquadric import Superquadric, contains, distance
-
 if TYPE_CHECKING:
     from .segment import SegmentOptions
 
@@ -187,6 +185,13 @@ class _Models:
         self.active = np.ones(len(theta), bool)
         self.loose = np.ones(len(theta), bool)     # admission at admit_factor * tau (else tau)
 
+    def concat(self, other: _Models) -> _Models:
+        """These hypotheses followed by `other`'s, flags included."""
+        out = _Models(*(np.concatenate([getattr(self, n), getattr(other, n)]) for n in ("theta", "regions", "dist", "inside")))
+        out.active = np.concatenate([self.active, other.active])
+        out.loose = np.concatenate([self.loose, other.loose])
+        return out
+
     def take(self, keep):
         for name in ("theta", "regions", "dist", "inside", "active", "loose"):
             setattr(self, name, getattr(self, name)[keep])
@@ -326,28 +331,56 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
     return best[0], best[1], best[2], best[3]
 
 
-def _seed(run: _Runner, opts: SegmentOptions):
-    dom = run.dom
-    if not dom.seeds:
+def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
+    """Fit the seed windows (all of the domain's, or `seeds`) and keep those consistent with the noise.
+
+    The first call (all seeds) may raise the noise to the typical seed-fit residual."""
+    first = seeds is None
+    seeds = run.dom.seeds if first else seeds
+    if not seeds:
         return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), np.zeros((0, run.P), np.float32),
                        np.zeros((0, run.P), bool))
-    theta, d, inside, score = _fit_best(run, dom.seeds, opts.fit_steps)
-    if opts.adaptive_noise and opts.noise is None and opts.threshold is None:
+    theta, d, inside, score = _fit_best(run, seeds, opts.fit_steps)
+    if first and opts.adaptive_noise and opts.noise is None and opts.threshold is None:
         # Real surfaces are not exact superquadrics: take the noise as at least the typical residual
         # of the seed fits (robust: median over seeds of the median absolute distance / 0.6745).
-        per_seed = [np.median(d[i, ids]) / 0.6745 for i, ids in enumerate(dom.seeds) if np.isfinite(score[i])]
+        per_seed = [np.median(d[i, ids]) / 0.6745 for i, ids in enumerate(seeds) if np.isfinite(score[i])]
         if per_seed:
             run.set_noise(max(run.noise, float(np.median(per_seed))))
             d, inside = run.distances(theta)
-    regions = np.zeros((len(dom.seeds), run.P), bool)
+    regions = np.zeros((len(seeds), run.P), bool)
     keep = np.isfinite(score)
-    for i, ids in enumerate(dom.seeds):
+    for i, ids in enumerate(seeds):
         inl = d[i, ids] < run.tau
         keep[i] &= inl.mean() >= opts.seed_inlier_fraction      # statistically consistent with the noise
         regions[i, ids[inl]] = True
     models = _Models(theta, regions, d, inside)
     models.take(keep)
     return models
+
+
+def free_components(free, neighbours, min_size: int, max_size: int) -> list:
+    """Connected sets of `free` points (P,) bool along the adjacency (P, k), as index arrays, for the
+    components with `min_size` to `max_size` points (min-label propagation with pointer jumping)."""
+    P = free.shape[0]
+    label = np.where(free, np.arange(P), P)
+    nb = np.where(neighbours >= 0, neighbours, np.arange(P)[:, None])
+    ok = free[:, None] & free[nb]
+    label_ext = np.append(label, P)
+    while True:
+        cand = np.where(ok, label_ext[nb], P).min(1)
+        new = np.minimum(label, cand)
+        new = np.where(free, new, P)
+        new = np.where(free, np.append(new, P)[new], P)          # pointer jumping: labels are indices
+        if np.array_equal(new, label):
+            break
+        label = new
+        label_ext = np.append(label, P)
+    ids = np.flatnonzero(free)
+    order = np.argsort(label[ids], kind="stable")
+    ids, lab = ids[order], label[ids][order]
+    cuts = np.flatnonzero(np.diff(lab)) + 1
+    return [c for c in np.split(ids, cuts) if min_size <= c.size <= max_size]
 
 
 def _grow(run: _Runner, models: _Models, opts: SegmentOptions):

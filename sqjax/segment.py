@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .fitting import bucket, to_superquadric
-from .recovery import NUM_PARAMS, _domain, _fit_best, _grow, _Models, _pad_rows, _Runner, _seed
+from .recovery import NUM_PARAMS, _domain, _fit_best, _grow, _Models, _pad_rows, _Runner, _seed, free_components
 from .selection import SelectionWeights, build_q, select
 from .superquadric import Superquadric
 
@@ -38,6 +38,9 @@ class SegmentOptions:
     - `max_points`: a region is subsampled to at most this many points for its refit.
     - `weights`: K1, K2, K3 (None = `SelectionWeights.for_threshold(tau)`); `selector`: "greedy" (the
       paper), "local" or "exact".
+    - `reseed`: rounds of a second chance after the final selection: seed again where no selected model
+      explains the data, grow those seeds and select among old and new (parts whose hypotheses lost
+      early to a neighbour's). 0 = the paper's single pass.
     - `merge`: try joining selected models whose union one superquadric explains (occlusion splits).
     - `min_exclusive`: after the final selection, a model explaining less than this share of its
       region alone (the rest is also explained by others) is dropped as redundant.
@@ -62,6 +65,7 @@ class SegmentOptions:
     weights: SelectionWeights | None = None
     selector: str = "greedy"
     merge: bool = True
+    reseed: int = 2
     min_exclusive: float = 0.2
     jump_factor: float = 4.0
 
@@ -149,8 +153,7 @@ def _merge(run: _Runner, models: _Models, opts):
     good = ok & (reg.sum(1) >= opts.keep_fraction * union.sum(1))
     if not good.any():
         return models
-    out = _Models(*(np.concatenate([a, b[good]]) for a, b in
-                    ((models.theta, theta), (models.regions, reg), (models.dist, d), (models.inside, inside))))
+    out = models.concat(_Models(theta[good], reg[good], d[good], inside[good]))
     out.active[:] = False
     return out
 
@@ -177,41 +180,65 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     opts = options if options is not None else SegmentOptions(**kw)
     t_start = time.perf_counter()
     compile_start = _COMPILE_SECONDS[0]
-    if True:
-        dom, noise, tau = _domain(data, opts, k)
-        dtype = jnp.float32
-        run = _Runner(dom, opts, noise, tau, dtype)
-        models = _seed(run, opts)
-        noise, tau = run.noise, run.tau
-        weights = opts.weights or SelectionWeights.for_threshold(tau)
-        history, stats = [], {"seeds": len(dom.seeds), "seed_models": len(models.theta), "selections": 0,
-                              "greedy_worse": 0, "growth_steps": 0}
+    dom, noise, tau = _domain(data, opts, k)
+    run = _Runner(dom, opts, noise, tau, jnp.float32)
+    models = _seed(run, opts)
+    noise, tau = run.noise, run.tau
+    weights = opts.weights or SelectionWeights.for_threshold(tau)
+    history, stats = [], {"seeds": len(dom.seeds), "seed_models": len(models.theta), "selections": 0,
+                          "greedy_worse": 0, "growth_steps": 0, "reseeded": 0}
+
+    def select_(models):
+        m, st = _select(models, tau, opts, weights)
+        stats["selections"] += 1
+        stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
+        models.take(m)
+        history.append(models.theta.copy())
+
+    def recover_and_select(models, budget):
+        """Growth of the active models interleaved with selection, until all stop or `budget` steps."""
         step = 0
-        while models.active.any() and step < opts.max_steps:
+        while models.active.any() and step < budget:
             for _ in range(opts.select_every):
                 _grow(run, models, opts)
                 step += 1
+                stats["growth_steps"] += 1
                 if progress is not None:
-                    progress(step, int(models.active.sum()), len(models.theta))
-                if not models.active.any() or step >= opts.max_steps:
+                    progress(stats["growth_steps"], int(models.active.sum()), len(models.theta))
+                if not models.active.any() or step >= budget:
                     break
-            m, st = _select(models, tau, opts, weights)
-            stats["selections"] += 1
-            stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
-            models.take(m)
-            history.append(models.theta.copy())
-        stats["growth_steps"] = step
+            select_(models)
+
+    def final_selection(models):
+        """Rejoin occlusion splits, select, drop the redundant."""
         if opts.merge and len(models.theta) > 1:
             models = _merge(run, models, opts)
         if len(models.theta):
-            m, st = _select(models, tau, opts, weights)
-            models.take(m)
-            stats["selections"] += 1
-            stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
-            stats["pruned"] = _prune_redundant(models, opts.min_exclusive)
-            history.append(models.theta.copy())
-        parts, labels = _finish(run, models)
-        history = [_to_world(h, run.centre) for h in history]
+            select_(models)
+            stats["pruned"] = stats.get("pruned", 0) + _prune_redundant(models, opts.min_exclusive)
+        return models
+
+    recover_and_select(models, opts.max_steps)
+    models = final_selection(models)
+    for _ in range(opts.reseed):
+        # Another chance for what the final models leave unexplained: seeds lying there grow beside
+        # the (stopped) selected models and compete with them in the selections.
+        free = ~models.regions.any(0)
+        fresh = [ids for ids in dom.seeds if free[ids].mean() >= opts.seed_inlier_fraction]
+        # small unexplained pieces that no seed window fits inside (windows touching an edge are not
+        # seeds) are seeds as a whole
+        fresh += free_components(free, dom.neighbours, opts.min_seed_points,
+                                 4 * max((len(s) for s in dom.seeds), default=opts.min_seed_points))
+        new = _seed(run, opts, fresh) if fresh else None
+        if new is None or not len(new.theta):
+            break
+        stats["reseeded"] += len(new.theta)
+        models.active[:] = False
+        models = models.concat(new)
+        recover_and_select(models, opts.max_steps)
+        models = final_selection(models)
+    parts, labels = _finish(run, models)
+    history = [_to_world(h, run.centre) for h in history]
     total = time.perf_counter() - t_start
     compile_s = _COMPILE_SECONDS[0] - compile_start
     timings = {"total": total, "compile": compile_s, "run": total - compile_s}

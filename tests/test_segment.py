@@ -113,3 +113,27 @@ def test_one_kernel_call_per_growth_step_on_bucketed_shapes(monkeypatch):
     seed_calls = 3                               # the three starts of every seed, each one batch
     assert len(calls) <= seed_calls + seg.stats["growth_steps"]
     assert len({shape for shape, _ in calls}) <= 6
+
+
+def test_free_components_follow_the_adjacency():
+    """Connected unexplained pieces along the (cut) adjacency, filtered by size."""
+    from sqjax.recovery import free_components
+
+    # a chain 0-1-2, a cut, then 3-4, and 5 alone
+    nb = np.array([[1, -1], [0, 2], [1, -1], [4, -1], [3, -1], [-1, -1]])
+    free = np.ones(6, bool)
+    assert [c.tolist() for c in free_components(free, nb, 1, 10)] == [[0, 1, 2], [3, 4], [5]]
+    assert [c.tolist() for c in free_components(free, nb, 2, 2)] == [[3, 4]]
+    free[1] = False                                       # explained point splits the chain
+    assert [c.tolist() for c in free_components(free, nb, 1, 10)] == [[0], [2], [3, 4], [5]]
+
+
+def test_reseeding_finds_a_part_whose_hypotheses_lost_early():
+    """With reseeding off (the paper's single pass) a part may end unexplained; the second chance
+    never loses a correct detection and only adds parts that explain data."""
+    image, truth = sqjax.random_scene(4, n_parts=(2, 6), shape=(120, 160), noise=0.005)
+    single = segment(image, reseed=0)
+    again = segment(image)
+    s1, s2 = hoover(image.labels, single.labels), hoover(image.labels, again.labels)
+    assert s2.correct >= s1.correct and s2.correct == len(truth), (s1.to_dict(), s2.to_dict())
+    assert again.stats["reseeded"] > 0 and single.stats["reseeded"] == 0
