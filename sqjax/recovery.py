@@ -21,20 +21,29 @@ import numpy as np
 from . import rotation as so3
 from .fitting import FitOptions, bucket, fit_padded
 from .rangeimage import RangeImage
+from .superquadric import log_inside_outside_and_gradient
 if TYPE_CHECKING:
     from .segment import SegmentOptions
 
 NUM_PARAMS = 11
-_CHUNK = 32   # hypotheses per call of the distance kernel (one compiled shape, bounded memory)
-_QUEUE = 3    # distance chunks in flight while one is read back
+_PAIRS = 1 << 15   # (model, point) pairs per call of the distance kernel
+_QUEUE = 3         # distance chunks in flight while one is read back
 
 
 def batch_bucket(k: int) -> int:
-    """Padded number of hypotheses for k: 32, 48, 64, 96, 128, 192, ... (at most 1/3 wasted)."""
+    """Padded number of hypotheses for k: 1, 4, 16, then 32, 48, 64, 96, 128, 192, ... (at most 1/3
+    wasted from 32 on). The small buckets matter: late in growth only a few models are active, and a
+    step costs in proportion to the padded batch."""
+    for b in (1, 4, 16):
+        if k <= b:
+            return b
     b = 32
     while b < k:
         b = b * 3 // 2 if b & (b - 1) == 0 else b * 4 // 3
     return b
+
+
+_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))   # 8-neighbours (row, col)
 
 
 @dataclasses.dataclass
@@ -44,6 +53,28 @@ class _Domain:
     seeds: list                   # index arrays, one per seed window
     index: np.ndarray             # (P,) flat pixel index (images) or point index (clouds)
     shape: tuple                  # label output shape
+    edges: np.ndarray | None = None   # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
+
+    def dilate(self, regions, rings: int):
+        """Regions (M, P) bool grown by `rings` steps along the adjacency.
+
+        Images: shifted slices of the (M, H, W) pixel grid, masked by the edges (a memory copy per
+        direction, not a gather). Clouds: a gather per neighbour column. (M, P) temporaries only."""
+        if self.edges is None:
+            return _dilate(regions, self.neighbours, rings)
+        H, W = self.shape
+        M = regions.shape[0]
+        g = np.zeros((M, H * W), bool)
+        g[:, self.index] = regions
+        g = g.reshape(M, H, W)
+        for _ in range(rings):
+            step = g.copy()
+            for (dr, dc), edge in zip(_OFFSETS, self.edges):
+                dst = (slice(max(-dr, 0), H - max(dr, 0)), slice(max(-dc, 0), W - max(dc, 0)))
+                src = (slice(max(dr, 0), H + min(dr, 0)), slice(max(dc, 0), W + min(dc, 0)))
+                step[(slice(None),) + dst] |= g[(slice(None),) + src] & edge[dst]
+            g = step
+        return g.reshape(M, H * W)[:, self.index]
 
 
 def estimate_noise(image: RangeImage) -> float:
@@ -71,7 +102,7 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
     idmap = idmap.reshape(H, W)
     P = pts.reshape(-1, 3)[flat]
     # adjacency: 8-neighbours, cut where the 3-D step is a depth discontinuity
-    offs = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+    offs = _OFFSETS
     rr, cc = np.divmod(flat, W)
     nb = -np.ones((flat.size, 8), np.int64)
     steps = np.full((flat.size, 8), np.inf)
@@ -94,7 +125,9 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
             ids = ids[ids >= 0]
             if ids.size >= min_seed and not broken[ids].any():
                 seeds.append(ids)
-    return _Domain(P, nb, seeds, flat, (H, W))
+    edges = np.zeros((len(offs), H * W), bool)
+    edges[:, flat] = (nb >= 0).T
+    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W))
 
 
 def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Domain:
@@ -129,81 +162,78 @@ def _knn(P, k, queries=None, block=2048):
 
 
 # ----------------------------------------------------------------------------------------------------
-# jitted kernels over all data points
+# jitted kernels
 
 
-def _log_f_and_grad(x, log_size, epsilon):
-    """log F (eq. 5) of model-frame points x (P, 3) and log |d log F / dx| (P,), closed form.
+@jax.jit
+def _pair_distances(theta, points, model, point, enlarge, margin):
+    """Eq. 10 distance of `points[point[e]]` to the model `theta[model[e]]`, and whether the point
+    lies inside that model enlarged (a1..a3 times `enlarge`, plus `margin`).
 
-    With A, B, C the log-powers of |x/a1|, |y/a2|, |z/a3| and the two log-sum-exps s = lse(A, B),
-    t = lse(e2/e1 s, C): d log F / dx = 2 w_t w_s / x, d/dy = 2 w_t (1 - w_s) / y, d/dz = 2 (1 - w_t) / z,
-    where w are the softmax weights; everything stays in logs, so it is finite at 0 and far away.
+    theta (K, 11), points (P, 3), model and point (E,) int32 -> (E,) distances, (E,) bool. Undeformed
+    models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|, which is
+    rotation-invariant, so it is evaluated in the model frame in closed form, without autodiff.
     """
-    e1, e2 = epsilon[0], epsilon[1]
-    tiny = jnp.finfo(x.dtype).tiny
-    lx = jnp.log(jnp.maximum(jnp.abs(x), tiny))
-    la = lx - log_size
-    A, B, C = la[:, 0] * (2 / e2), la[:, 1] * (2 / e2), la[:, 2] * (2 / e1)
-    s = jnp.logaddexp(A, B)
-    u = s * (e2 / e1)
-    t = jnp.logaddexp(u, C)
-    log_f = e1 * t
-    log_g = jnp.stack([u - t + A - s, u - t + B - s, C - t], -1) - lx + jnp.log(2.0)   # log |components|
-    return log_f, 0.5 * jax.scipy.special.logsumexp(2.0 * log_g, axis=-1)
-
-
-@eqx.filter_jit
-def _distances(theta, points, enlarge, margin):
-    """theta (K, 11), points (P, 3) -> eq. 10 distances (K, P) and inside-enlarged-model (K, P) bool.
-
-    Undeformed models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|,
-    rotation-invariant, so it is evaluated in the model frame without autodiff.
-    """
-    def one(th):
-        la, e, w, t = th[0:3], th[3:5], th[5:8], th[8:11]
-        x = (points - t) @ so3.exp(w)
-        log_f, log_gnorm = _log_f_and_grad(x, la, e)
-        lf = jnp.where(log_f == 0.0, 1e-30, log_f)           # safe operand: F = 1 gives d = 0 below
-        log_num = jnp.where(lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
-                            jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30))))     # log |1 - 1/F|
-        d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
-        big, _ = _log_f_and_grad(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
-        return d, big <= 0.0
-    return jax.vmap(one)(theta)
+    rot = jax.vmap(so3.exp)(theta[:, 5:8])
+    th = theta[model]
+    x = jnp.einsum("ei,eij->ej", points[point] - th[:, 8:11], rot[model])
+    la, e = th[:, 0:3], th[:, 3:5]
+    log_f, log_gnorm = log_inside_outside_and_gradient(x, la, e)
+    lf = jnp.where(log_f == 0.0, 1e-30, log_f)            # safe operand: F = 1 gives d = 0 below
+    log_num = jnp.where(lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
+                        jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30))))          # log |1 - 1/F|
+    d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
+    big, _ = log_inside_outside_and_gradient(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
+    return d, big <= 0.0
 
 
 def _pad_rows(a, n, fill):
     return np.concatenate([a, np.repeat(fill[None], n - a.shape[0], 0)]) if n > a.shape[0] else a
 
 
-class _Models:
-    """The hypotheses on the host: parameters (M, 11), regions (M, P) bool, distances (M, P) of every
-    point to each model, inside-the-enlarged-model (M, P), and the active flags (M,)."""
+def _pairs(regions: list):
+    """Index arrays (one per hypothesis) -> (model, point) pairs, as `np.nonzero` of the masks gives."""
+    sizes = np.array([r.size for r in regions], np.int64)
+    return np.repeat(np.arange(len(regions)), sizes), np.concatenate(regions) if regions else np.zeros(0, np.int64)
 
-    def __init__(self, theta, regions, dist, inside):
-        self.theta, self.regions, self.dist, self.inside = theta, regions, dist, inside
+
+def _split(values, model, k):
+    """Values (E,) of pairs sorted by model -> list of k arrays, one per model."""
+    return np.split(values, np.cumsum(np.bincount(model, minlength=k))[:-1])
+
+
+class _Models:
+    """The hypotheses on the host: parameters theta (M, 11), regions (M, P) bool, and for each model
+    the eq. 10 distances of its region's points (`dist[i]` aligned with `np.flatnonzero(regions[i])`,
+    float32); flags `active` (still growing) and `loose` (admission at admit_factor * tau)."""
+
+    def __init__(self, theta, regions, dist):
+        self.theta, self.regions, self.dist = theta, regions, list(dist)
         self.active = np.ones(len(theta), bool)
-        self.loose = np.ones(len(theta), bool)     # admission at admit_factor * tau (else tau)
+        self.loose = np.ones(len(theta), bool)
 
     def concat(self, other: _Models) -> _Models:
         """These hypotheses followed by `other`'s, flags included."""
-        out = _Models(*(np.concatenate([getattr(self, n), getattr(other, n)]) for n in ("theta", "regions", "dist", "inside")))
+        out = _Models(np.concatenate([self.theta, other.theta]), np.concatenate([self.regions, other.regions]),
+                      self.dist + other.dist)
         out.active = np.concatenate([self.active, other.active])
         out.loose = np.concatenate([self.loose, other.loose])
         return out
 
     def take(self, keep):
-        for name in ("theta", "regions", "dist", "inside", "active", "loose"):
+        keep = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep)
+        self.dist = [self.dist[i] for i in keep]
+        for name in ("theta", "regions", "active", "loose"):
             setattr(self, name, getattr(self, name)[keep])
 
 
 class _Runner:
     def __init__(self, dom: _Domain, opts: SegmentOptions, noise: float, tau: float, dtype):
         self.dom, self.opts, self.noise, self.tau, self.dtype = dom, opts, noise, tau, dtype
-        Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
         self.centre = dom.points.mean(0)
         self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
-        self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.full(3, 1e6)), dtype)
+        Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
+        self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.zeros(3)), dtype)
         self.P = dom.points.shape[0]
         self.margin = 2.0 * tau
 
@@ -211,25 +241,32 @@ class _Runner:
         self.noise, self.tau = noise, self.opts.threshold_factor * noise
         self.margin = 2.0 * self.tau
 
-    def distances(self, theta):
-        """(K, 11) -> eq. 10 distances (K, P) float32 and inside-the-enlarged-model (K, P).
+    def distances(self, theta, model, point):
+        """Eq. 10 distances (E,) float32 of the pairs (point[e] to model theta[model[e]]), and whether
+        each point is inside its model enlarged (E,) bool. theta (K, 11); model, point (E,).
 
-        Dispatched as fixed chunks of `_CHUNK` hypotheses, a few queued ahead of the one read back:
-        on CPU ~2x faster than one call looping over the chunks inside XLA (`lax.map`), and only a
-        few chunks of device memory alive at once.
+        Only the pairs asked for are computed (a region and the ring around it, not every point), in
+        fixed chunks of `_PAIRS` (smaller calls padded to a power of two), a few queued ahead of the
+        one read back. theta is padded to `batch_bucket(K)` rows.
         """
+        E = model.size
+        d, inside = np.empty(E, np.float32), np.empty(E, bool)
+        if E == 0:
+            return d, inside
         K = theta.shape[0]
-        d, inside = np.empty((K, self.P), np.float32), np.empty((K, self.P), bool)
-        args = (self.points, jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
+        th = jnp.asarray(_pad_rows(theta, batch_bucket(K), theta[0]), self.dtype)
+        args = (jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
+        n = min(_PAIRS, bucket(E, 1024))
 
         def read(s, out):
-            n = min(_CHUNK, K - s)
-            d[s : s + n], inside[s : s + n] = np.asarray(out[0])[:n, : self.P], np.asarray(out[1])[:n, : self.P]
+            m = min(n, E - s)
+            d[s : s + m], inside[s : s + m] = np.asarray(out[0])[:m], np.asarray(out[1])[:m]
 
         pending = []
-        for s in range(0, K, _CHUNK):
-            th = jnp.asarray(_pad_rows(theta[s : s + _CHUNK], _CHUNK, theta[s]), self.dtype)
-            pending.append((s, _distances(th, *args)))
+        for s in range(0, E, n):
+            mi, pi = np.zeros(n, np.int32), np.zeros(n, np.int32)
+            mi[: min(n, E - s)], pi[: min(n, E - s)] = model[s : s + n], point[s : s + n]
+            pending.append((s, _pair_distances(th, self.points, jnp.asarray(mi), jnp.asarray(pi), *args)))
             if len(pending) > _QUEUE:
                 read(*pending.pop(0))
         for item in pending:
@@ -311,24 +348,29 @@ _log_rotations = jax.jit(so3.log)
 
 
 def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False):
-    """Fit every region from each start of `_starts` (and the fitter's multistart if asked); keep, per region, the start whose fit explains
-    most of the region's points within tau (eq. 10). Returns theta (K, 11), distances, inside flags."""
+    """Fit every region (sorted index arrays) from each start of `_starts` (and the fitter's
+    multistart if asked); keep, per region, the start whose fit explains most of the region's points
+    within tau (eq. 10). Returns theta (K, 11), the distances of each region's points (list of K
+    arrays) and the score (K,), -inf where no fit succeeded."""
     best = None
+    model, point = _pairs(regions)
+    sizes = np.array([r.size for r in regions])
     starts = list(_starts(run.host_points, regions)) + ([None] if multistart else [])
     for th0 in starts:
         theta = run.fit(regions, th0, steps)
         ok = np.isfinite(theta).all(1)
         theta = np.where(ok[:, None], theta, 0.0)
-        d, inside = run.distances(theta)
-        score = np.array([np.mean(d[i, r] < run.tau) - 1e-3 * np.sqrt(np.mean(np.minimum(d[i, r], 1e3) ** 2))
-                          / run.tau if ok[i] else -np.inf for i, r in enumerate(regions)])
+        d, _ = run.distances(theta, model, point)
+        explained = np.bincount(model, d < run.tau, len(regions)) / sizes
+        rms = np.sqrt(np.bincount(model, np.minimum(d, 1e3).astype(np.float64) ** 2, len(regions)) / sizes)
+        score = np.where(ok, explained - 1e-3 * rms / run.tau, -np.inf)
+        d = _split(d, model, len(regions))
         if best is None:
-            best = [theta, np.array(d), np.array(inside), score]   # own, writable copies
+            best = [theta, d, score]
         else:
-            better = score > best[3]
-            for j, new in enumerate((theta, d, inside, score)):
-                best[j][better] = new[better]        # in place: these are (K, P) arrays
-    return best[0], best[1], best[2], best[3]
+            for i in np.flatnonzero(score > best[2]):
+                best[0][i], best[1][i], best[2][i] = theta[i], d[i], score[i]
+    return tuple(best)
 
 
 def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
@@ -336,25 +378,27 @@ def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
 
     The first call (all seeds) may raise the noise to the typical seed-fit residual."""
     first = seeds is None
-    seeds = run.dom.seeds if first else seeds
+    seeds = [np.sort(ids) for ids in (run.dom.seeds if first else seeds)]
     if not seeds:
-        return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), np.zeros((0, run.P), np.float32),
-                       np.zeros((0, run.P), bool))
-    theta, d, inside, score = _fit_best(run, seeds, opts.fit_steps)
+        return _Models(np.zeros((0, NUM_PARAMS)), np.zeros((0, run.P), bool), [])
+    theta, d, score = _fit_best(run, seeds, opts.fit_steps)
     if first and opts.adaptive_noise and opts.noise is None and opts.threshold is None:
         # Real surfaces are not exact superquadrics: take the noise as at least the typical residual
         # of the seed fits (robust: median over seeds of the median absolute distance / 0.6745).
-        per_seed = [np.median(d[i, ids]) / 0.6745 for i, ids in enumerate(seeds) if np.isfinite(score[i])]
+        per_seed = [np.median(d[i]) / 0.6745 for i in range(len(seeds)) if np.isfinite(score[i])]
         if per_seed:
             run.set_noise(max(run.noise, float(np.median(per_seed))))
-            d, inside = run.distances(theta)
+            model, point = _pairs(seeds)
+            d = _split(run.distances(theta, model, point)[0], model, len(seeds))
     regions = np.zeros((len(seeds), run.P), bool)
     keep = np.isfinite(score)
+    dist = []
     for i, ids in enumerate(seeds):
-        inl = d[i, ids] < run.tau
+        inl = d[i] < run.tau
         keep[i] &= inl.mean() >= opts.seed_inlier_fraction      # statistically consistent with the noise
         regions[i, ids[inl]] = True
-    models = _Models(theta, regions, d, inside)
+        dist.append(d[i][inl])
+    models = _Models(theta, regions, dist)
     models.take(keep)
     return models
 
@@ -384,34 +428,46 @@ def free_components(free, neighbours, min_size: int, max_size: int) -> list:
 
 
 def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
-    """One growth step for every active model: enlarge, admit adjacent points near the model, refit."""
+    """One growth step for every active model: enlarge, admit adjacent points near the model, refit.
+
+    Distances are computed only where they are needed: on the candidate ring around each region
+    (admission) and on the grown region after the refit (what stays)."""
     act = np.flatnonzero(models.active)
     if act.size == 0:
         return
     R = models.regions[act]
-    cand = _dilate(R, run.dom.neighbours, opts.rings) & ~R
-    factor = np.where(models.loose[act], opts.admit_factor, 1.0)[:, None]
-    admit = cand & models.inside[act] & (models.dist[act] < factor * run.tau)
-    grown = R | admit
-    has_new = admit.any(1)
-    theta = models.theta[act].copy()
-    if has_new.any():
-        sel = np.flatnonzero(has_new)
-        new_theta = run.fit([np.flatnonzero(grown[i]) for i in sel], theta[sel], opts.fit_steps)
-        new_d, new_in = run.distances(np.nan_to_num(new_theta))
-        for k, i in enumerate(sel):
-            m = act[i]
-            region = grown[i] & (new_d[k] < run.tau)
-            ok = np.isfinite(new_theta[k]).all() and region.sum() >= opts.keep_fraction * grown[i].sum()
-            if ok and region.sum() > R[i].sum():
-                models.theta[m], models.regions[m], models.dist[m], models.inside[m] = (new_theta[k], region,
-                                                                                       new_d[k], new_in[k])
-                models.loose[m] = True
-            elif models.loose[m]:
-                models.loose[m] = False             # retry with only the points within tau
-            else:
-                models.active[m] = False            # fit broke down or no growth: keep the last good state
+    cand = run.dom.dilate(R, opts.rings) & ~R
+    k, p = np.nonzero(cand)
+    d, inside = run.distances(models.theta[act], k, p)
+    factor = np.where(models.loose[act], opts.admit_factor, 1.0)
+    ok = inside & (d < factor[k] * run.tau)
+    before = R.sum(1)
+    grown = R.copy()
+    grown[k[ok], p[ok]] = True
+    has_new = np.bincount(k[ok], minlength=act.size) > 0
     models.active[act[~has_new]] = False
+    sel = np.flatnonzero(has_new)
+    if sel.size == 0:
+        return
+    grown = grown[sel]
+    new_theta = run.fit([np.flatnonzero(g) for g in grown], models.theta[act[sel]], opts.fit_steps)
+    k, p = np.nonzero(grown)
+    d, _ = run.distances(np.nan_to_num(new_theta), k, p)
+    inl = d < run.tau
+    kept = np.bincount(k[inl], minlength=sel.size)
+    size = np.bincount(k, minlength=sel.size)
+    dist = _split(d[inl], k[inl], sel.size)
+    grown[:] = False
+    grown[k[inl], p[inl]] = True                # now the new regions: the grown points within tau
+    for j, i in enumerate(sel):
+        m = act[i]
+        if np.isfinite(new_theta[j]).all() and kept[j] >= opts.keep_fraction * size[j] and kept[j] > before[i]:
+            models.theta[m], models.regions[m], models.dist[m] = new_theta[j], grown[j], dist[j]
+            models.loose[m] = True
+        elif models.loose[m]:
+            models.loose[m] = False             # retry with only the points within tau
+        else:
+            models.active[m] = False            # fit broke down or no growth: keep the last good state
 
 
 def _domain(data, opts: SegmentOptions, k: int):

@@ -113,7 +113,7 @@ class Segmentation:
 
 
 def _select(models: _Models, tau, opts, weights):
-    d2 = np.minimum(models.dist, tau) ** 2
+    d2 = [np.minimum(d, tau) ** 2 for d in models.dist]
     Q = build_q(models.regions, d2, np.full(len(models.theta), NUM_PARAMS), weights)
     m, stats = select(Q, opts.selector)
     return m, stats
@@ -145,15 +145,18 @@ def _merge(run: _Runner, models: _Models, opts):
     pairs = [(i, j) for i in range(M) for j in range(i + 1, M)]
     if not pairs:
         return models
-    regions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
-    theta, d, inside, score = _fit_best(run, regions, opts.fit_steps, multistart=True)
-    ok = np.isfinite(score)
-    union = np.stack([models.regions[i] | models.regions[j] for i, j in pairs])
-    reg = union & (d < run.tau)
-    good = ok & (reg.sum(1) >= opts.keep_fraction * union.sum(1))
-    if not good.any():
+    unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
+    theta, d, score = _fit_best(run, unions, opts.fit_steps, multistart=True)
+    keep, regions, dist = [], [], []
+    for k, ids in enumerate(unions):
+        inl = d[k] < run.tau
+        if np.isfinite(score[k]) and inl.sum() >= opts.keep_fraction * ids.size:
+            region = np.zeros(run.P, bool)
+            region[ids[inl]] = True
+            keep.append(k), regions.append(region), dist.append(d[k][inl])
+    if not keep:
         return models
-    out = models.concat(_Models(theta[good], reg[good], d[good], inside[good]))
+    out = models.concat(_Models(theta[keep], np.stack(regions), dist))
     out.active[:] = False
     return out
 
@@ -252,7 +255,9 @@ def _finish(run: _Runner, models: _Models):
     if len(models.theta):
         # each pixel to its nearest model; near-ties (within the noise) go to the larger part, so two
         # almost coincident surfaces do not leave a speckle decided by noise
-        d = np.where(models.regions, models.dist, np.inf)
+        d = np.full(models.regions.shape, np.inf, np.float32)
+        for i, di in enumerate(models.dist):
+            d[i, models.regions[i]] = di
         near = d <= d.min(0) + run.noise
         best = np.argmax(near, 0)                       # models are sorted largest first
         has = np.isfinite(d.min(0))
@@ -261,7 +266,7 @@ def _finish(run: _Runner, models: _Models):
     sqs = _to_world(models.theta, run.centre)
     for i, sq in enumerate(sqs):
         reg = np.flatnonzero(models.regions[i])
-        parts.append(Part(sq, run.dom.index[reg], float(np.sum(models.dist[i, reg] ** 2)), int(reg.size)))
+        parts.append(Part(sq, run.dom.index[reg], float(np.sum(models.dist[i].astype(np.float64) ** 2)), int(reg.size)))
     return parts, flat.reshape(run.dom.shape)
 
 

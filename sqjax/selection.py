@@ -32,15 +32,24 @@ class SelectionWeights:
 def build_q(regions, sq_dist, num_params, weights: SelectionWeights) -> np.ndarray:
     """The symmetric (M, M) matrix Q of eqs. 2–4.
 
-    **Arguments:** `regions` (M, P) bool (R_i over P data points); `sq_dist` (M, P) squared eq. 10
-    distances d_i^2 (used only inside R_i); `num_params` (M,) N_i.
+    **Arguments:** `regions` (M, P) bool (R_i over P data points); `sq_dist` the squared eq. 10
+    distances d_i^2, either (M, P) (used only inside R_i) or a list of M arrays, the i-th holding
+    d_i^2 of R_i's points in index order (`np.flatnonzero(regions[i])`); `num_params` (M,) N_i.
     """
     regions = np.asarray(regions, bool)
-    D = np.where(regions, sq_dist, 0.0).astype(np.float32)
+    M = regions.shape[0]
+    if isinstance(sq_dist, np.ndarray) and sq_dist.ndim == 2:
+        sq_dist = [sq_dist[i, regions[i]] for i in range(M)]
     n = regions.sum(1).astype(np.float32)
-    xi = D.sum(1)
+    xi = np.array([np.sum(d, dtype=np.float64) for d in sq_dist], np.float32).reshape(M)
     shared = regions.sum(0) >= 2             # only points in two or more regions enter the overlaps
-    B, D = regions[:, shared].astype(np.float32), D[:, shared]
+    B = regions[:, shared].astype(np.float32)
+    column = np.full(regions.shape[1], -1)
+    column[shared] = np.arange(B.shape[1])
+    D = np.zeros(B.shape, np.float32)
+    for i, d in enumerate(sq_dist):
+        c = column[regions[i]]
+        D[i, c[c >= 0]] = np.asarray(d)[c >= 0]
     overlap = B @ B.T                        # |R_i ∩ R_j| (its diagonal is not used)
     s = D @ B.T                              # s_ij = sum over R_i ∩ R_j of d_i^2
     xi_ij = np.maximum(s, s.T)               # eq. 4

@@ -185,6 +185,13 @@ def _ratio_floor(dtype) -> float:
     return 1e-10 if jnp.dtype(dtype) == jnp.float32 else 1e-20
 
 
+def _log_ratio(c, log_a):
+    """log |c / a| on a safe operand: |c| floored at a tiny fraction of a before the logarithm."""
+    thr = jnp.exp(log_a) * _ratio_floor(c.dtype)
+    ac = jnp.abs(c)
+    return jnp.log(jnp.where(ac > thr, ac, thr)) - log_a
+
+
 def log_inside_outside_xyz(x, y, z, log_size, epsilon):
     """log F (eq. 5) of model-frame coordinates given as three arrays of one shape (the kernel form).
 
@@ -194,16 +201,9 @@ def log_inside_outside_xyz(x, y, z, log_size, epsilon):
     finite for every finite input; capped far outside the model.
     """
     e1, e2 = epsilon[..., 0], epsilon[..., 1]
-    floor = _ratio_floor(x.dtype)
-
-    def log_ratio(c, la):
-        thr = jnp.exp(la) * floor
-        ac = jnp.abs(c)
-        return jnp.log(jnp.where(ac > thr, ac, thr)) - la
-
-    lx = log_ratio(x, log_size[..., 0])
-    ly = log_ratio(y, log_size[..., 1])
-    lz = log_ratio(z, log_size[..., 2])
+    lx = _log_ratio(x, log_size[..., 0])
+    ly = _log_ratio(y, log_size[..., 1])
+    lz = _log_ratio(z, log_size[..., 2])
     s = _logaddexp(lx * (2.0 / e2), ly * (2.0 / e2))
     t = _logaddexp(s * (e2 / e1), lz * (2.0 / e1))
     return jnp.minimum(e1 * t, _log_cap(x.dtype))
@@ -216,6 +216,26 @@ def log_inside_outside_local(x, log_size, epsilon):
     Finite with finite gradients for every finite input; capped at a value far outside any model.
     """
     return log_inside_outside_xyz(x[..., 0], x[..., 1], x[..., 2], log_size, epsilon)
+
+
+def log_inside_outside_and_gradient(x, log_size, epsilon):
+    """log F (eq. 5) of model-frame points x (..., 3) and log |grad log F| (...), in closed form.
+
+    `log_size` (..., 3) and `epsilon` (..., 2) broadcast against the points. With A, B, C the terms
+    (2 / e2) log|x / a1|, (2 / e2) log|y / a2|, (2 / e1) log|z / a3|, s = lse(A, B) and
+    t = lse(e2 / e1 s, C): d log F / dx = 2 w_t w_s / x, d / dy = 2 w_t (1 - w_s) / y,
+    d / dz = 2 (1 - w_t) / z, with w the softmax weights of the two log-sum-exps. Everything stays in
+    logs on the safe operand of `log_inside_outside_xyz`, so both are finite at the centre, on the
+    axes and far away. For kernels that need no autodiff (the eq. 10 distances of segmentation).
+    """
+    e1, e2 = epsilon[..., 0], epsilon[..., 1]
+    lr = _log_ratio(x, log_size)
+    A, B, C = lr[..., 0] * (2.0 / e2), lr[..., 1] * (2.0 / e2), lr[..., 2] * (2.0 / e1)
+    s = jnp.logaddexp(A, B)
+    u = s * (e2 / e1)
+    t = jnp.logaddexp(u, C)
+    log_g = jnp.stack([u - t + A - s, u - t + B - s, C - t], -1) - (lr + log_size) + jnp.log(2.0)
+    return e1 * t, 0.5 * jax.scipy.special.logsumexp(2.0 * log_g, axis=-1)
 
 
 def inside_outside(sq: Superquadric, points):
