@@ -403,9 +403,10 @@ def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
     return models
 
 
-def free_components(free, neighbours, min_size: int, max_size: int) -> list:
+def free_components(free, neighbours, min_size: int, max_size: int | None = None) -> list:
     """Connected sets of `free` points (P,) bool along the adjacency (P, k), as index arrays, for the
-    components with `min_size` to `max_size` points (min-label propagation with pointer jumping)."""
+    components with `min_size` to `max_size` (None: any) points (min-label propagation with pointer
+    jumping)."""
     P = free.shape[0]
     label = np.where(free, np.arange(P), P)
     nb = np.where(neighbours >= 0, neighbours, np.arange(P)[:, None])
@@ -424,7 +425,7 @@ def free_components(free, neighbours, min_size: int, max_size: int) -> list:
     order = np.argsort(label[ids], kind="stable")
     ids, lab = ids[order], label[ids][order]
     cuts = np.flatnonzero(np.diff(lab)) + 1
-    return [c for c in np.split(ids, cuts) if min_size <= c.size <= max_size]
+    return [c for c in np.split(ids, cuts) if min_size <= c.size <= (max_size or P)]
 
 
 def _grow(run: _Runner, models: _Models, opts: SegmentOptions):

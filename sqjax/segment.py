@@ -228,10 +228,10 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         # the (stopped) selected models and compete with them in the selections.
         free = ~models.regions.any(0)
         fresh = [ids for ids in dom.seeds if free[ids].mean() >= opts.seed_inlier_fraction]
-        # small unexplained pieces that no seed window fits inside (windows touching an edge are not
-        # seeds) are seeds as a whole
-        fresh += free_components(free, dom.neighbours, opts.min_seed_points,
-                                 4 * max((len(s) for s in dom.seeds), default=opts.min_seed_points))
+        # and every unexplained connected piece is a seed as a whole: the strips no seed window fits
+        # in (a plate's border around the box on it, windows touching an edge); a piece that no
+        # superquadric explains fails the seed test
+        fresh += free_components(free, dom.neighbours, opts.min_seed_points)
         new = _seed(run, opts, fresh) if fresh else None
         if new is None or not len(new.theta):
             break
