@@ -6,6 +6,8 @@ import pytest
 import sqjax
 from sqjax import PinholeCamera, RangeImage, hoover, paper_scene, segment
 
+from conftest import data_path
+
 
 @pytest.fixture(scope="module", params=["sphere_cylinder", "two_cylinders", "occluded_block"])
 def paper_result(request):
@@ -143,7 +145,6 @@ def test_mosd_plate_under_a_box_is_found():
     """mOSD learn17: a plate with a box on it. What the box leaves visible of the plate is a strip
     no seed window fits in; reseeding it as a whole connected piece finds the plate (all three
     objects, the table included, correct at T = 0.8)."""
-    from conftest import data_path
 
     image = sqjax.read_range_image(data_path("mosd", "learn", "learn17.pcd")).subsample(4)
     labels = image.labels

@@ -192,3 +192,26 @@ def test_create_euler_and_rotation_agree():
     assert np.allclose(np.asarray(a.euler), [0.1, 0.2, 0.3], atol=1e-6)
     d = a.to_dict()
     assert set(d) >= {"size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend"}
+
+
+@pytest.mark.parametrize("size, eps", [((1.0, 0.6, 1.4), (1.0, 1.0)), ((0.8, 1.2, 0.5), (0.1, 0.1)),
+                                       ((1.5, 0.7, 0.9), (1.9, 1.9)), ((0.9, 1.1, 1.3), (0.3, 1.7))])
+def test_segmentation_distance_kernel_matches_eq10(size, eps):
+    """The closed-form eq. 10 kernel of segmentation (model, point pairs; no autodiff) gives the
+    autodiff `distance` for undeformed models, and is finite at the hard points."""
+    from sqjax.recovery import _pair_distances
+
+    sq = _sq(size, eps, {})
+    theta = jnp.concatenate([jnp.log(sq.size), sq.epsilon, so3.log(sq.rotation), sq.translation])[None]
+    rng = np.random.default_rng(0)
+    local = rng.uniform(-2.0, 2.0, (500, 3)) * np.asarray(size)
+    pts = jnp.asarray(local @ np.asarray(sq.rotation).T + np.asarray(sq.translation), jnp.float32)
+    hard = _hard_points(sq)
+    allp = jnp.concatenate([pts, hard])
+    idx = jnp.arange(allp.shape[0], dtype=jnp.int32)
+    d, inside = _pair_distances(theta, allp, jnp.zeros_like(idx), idx, 1.15, 0.0)
+    assert bool(jnp.all(jnp.isfinite(d)))
+    np.testing.assert_allclose(d[:500], _jit_distance(sq, pts), rtol=2e-3, atol=1e-5)
+    f_big = np.asarray(inside_outside(_sq(np.asarray(size) * 1.15, eps, {}), pts))
+    clear = np.abs(f_big - 1.0) > 1e-3                   # not on the enlarged surface itself
+    np.testing.assert_array_equal(np.asarray(inside[:500])[clear], (f_big <= 1.0)[clear])
