@@ -1,11 +1,11 @@
 """Model recovery (the paper's section 2.1 and 3.2): seeds, and the growth of every hypothesis.
 
 Host orchestration in numpy around jit-compiled batch kernels: the refits of all active hypotheses at
-a growth step (`fitting.fit_padded`, warm-started) and the distances of every data point to every
-active model (`_distances`). The refit is one call per growth step over all active hypotheses, their
-number padded to a few fixed batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a
-growth step recompiles only when the hypotheses first reach a new bucket; the distances go out in
-fixed chunks of `_CHUNK` hypotheses (one compiled shape).
+a growth step (`fitting.fit_padded`, warm-started) and the eq. 10 distances (`_pair_distances`). The
+refit is one call per growth step over all active hypotheses, their number padded to a few fixed
+batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a growth step recompiles only
+when the hypotheses first reach a new bucket. Distances are computed only for the (model, point)
+pairs that are read (a region and the ring of candidates around it), in fixed chunks of `_PAIRS`.
 """
 
 from __future__ import annotations
