@@ -459,15 +459,14 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
     dist = _split(d[inl], k[inl], sel.size)
     grown[:] = False
     grown[k[inl], p[inl]] = True                # now the new regions: the grown points within tau
-    for j, i in enumerate(sel):
-        m = act[i]
-        if np.isfinite(new_theta[j]).all() and kept[j] >= opts.keep_fraction * size[j] and kept[j] > before[i]:
-            models.theta[m], models.regions[m], models.dist[m] = new_theta[j], grown[j], dist[j]
-            models.loose[m] = True
-        elif models.loose[m]:
-            models.loose[m] = False             # retry with only the points within tau
-        else:
-            models.active[m] = False            # fit broke down or no growth: keep the last good state
+    m = act[sel]
+    good = np.isfinite(new_theta).all(1) & (kept >= opts.keep_fraction * size) & (kept > before[sel])
+    retry = ~good & models.loose[m]             # retry with only the points within tau
+    models.active[m[~good & ~retry]] = False    # fit broke down or no growth: keep the last good state
+    models.loose[m[retry]] = False
+    models.theta[m[good]], models.regions[m[good]], models.loose[m[good]] = new_theta[good], grown[good], True
+    for j in np.flatnonzero(good):
+        models.dist[m[j]] = dist[j]
 
 
 def _domain(data, opts: SegmentOptions, k: int):
