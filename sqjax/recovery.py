@@ -19,7 +19,7 @@ import numpy as np
 
 from . import rotation as so3
 from .fitting import FitOptions, bucket, fit_padded
-from .rangeimage import RangeImage
+from .rangeimage import OrthographicCamera, RangeImage
 from .superquadric import log_inside_outside_and_gradient
 if TYPE_CHECKING:
     from .segment import SegmentOptions
@@ -53,6 +53,7 @@ class _Domain:
     index: np.ndarray             # (P,) flat pixel index (images) or point index (clouds)
     shape: tuple                  # label output shape
     edges: np.ndarray | None = None   # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
+    views: np.ndarray | None = None   # (P, 3) unit viewing rays (images), None = unknown (clouds)
 
     def dilate(self, regions, rings: int):
         """Regions (M, P) bool grown by `rings` steps along the adjacency.
@@ -126,7 +127,11 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
                 seeds.append(ids)
     edges = np.zeros((len(offs), H * W), bool)
     edges[:, flat] = (nb >= 0).T
-    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W))
+    if isinstance(image.camera, OrthographicCamera):
+        views = np.broadcast_to(np.array([0.0, 0.0, 1.0]), P.shape)
+    else:
+        views = P / np.linalg.norm(P, axis=1, keepdims=True)
+    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W), views)
 
 
 def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Domain:
@@ -165,25 +170,29 @@ def _knn(P, k, queries=None, block=2048):
 
 
 @jax.jit
-def _pair_distances(theta, points, model, point, enlarge, margin):
-    """Eq. 10 distance of `points[point[e]]` to the model `theta[model[e]]`, and whether the point
-    lies inside that model enlarged (a1..a3 times `enlarge`, plus `margin`).
+def _pair_distances(theta, points, views, model, point, enlarge, margin):
+    """Eq. 10 distance of `points[point[e]]` to the model `theta[model[e]]`, whether the point
+    lies inside that model enlarged (a1..a3 times `enlarge`, plus `margin`), and whether the model's
+    outward normal there turns away from the camera (n . view > 0.2 for the unit viewing ray `views`
+    (P, 3) of the point; zero rays = unknown, never away).
 
-    theta (K, 11), points (P, 3), model and point (E,) int32 -> (E,) distances, (E,) bool. Undeformed
+    theta (K, 11), points (P, 3), model and point (E,) int32 -> (E,) distances, (E,) bool, (E,) bool.
+    Undeformed
     models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|, which is
     rotation-invariant, so it is evaluated in the model frame in closed form, without autodiff.
     """
     rot = jax.vmap(so3.exp)(theta[:, 5:8])
     th = theta[model]
     x = jnp.einsum("ei,eij->ej", points[point] - th[:, 8:11], rot[model])
+    view = jnp.einsum("ei,eij->ej", views[point], rot[model])
     la, e = th[:, 0:3], th[:, 3:5]
-    log_f, log_gnorm = log_inside_outside_and_gradient(x, la, e)
+    log_f, log_gnorm, normal = log_inside_outside_and_gradient(x, la, e)
     lf = jnp.where(log_f == 0.0, 1e-30, log_f)            # safe operand: F = 1 gives d = 0 below
     log_num = jnp.where(lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
                         jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30))))          # log |1 - 1/F|
     d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
-    big, _ = log_inside_outside_and_gradient(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
-    return d, big <= 0.0
+    big, _, _ = log_inside_outside_and_gradient(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
+    return d, big <= 0.0, jnp.sum(normal * view, -1) > 0.2
 
 
 def _pad_rows(a, n, fill):
@@ -233,6 +242,8 @@ class _Runner:
         self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
         Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
         self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.zeros(3)), dtype)
+        views = np.zeros_like(self.host_points) if dom.views is None else dom.views
+        self.views = jnp.asarray(_pad_rows(views, Pn, np.zeros(3)), dtype)
         self.P = dom.points.shape[0]
         self.margin = 2.0 * tau
 
@@ -241,17 +252,18 @@ class _Runner:
         self.margin = 2.0 * self.tau
 
     def distances(self, theta, model, point):
-        """Eq. 10 distances (E,) float32 of the pairs (point[e] to model theta[model[e]]), and whether
-        each point is inside its model enlarged (E,) bool. theta (K, 11); model, point (E,).
+        """Eq. 10 distances (E,) float32 of the pairs (point[e] to model theta[model[e]]), whether
+        each point is inside its model enlarged (E,) bool and whether the model's surface there faces
+        away from the camera (E,) bool (see `_pair_distances`). theta (K, 11); model, point (E,).
 
         Only the pairs asked for are computed (a region and the ring around it, not every point), in
         fixed chunks of `_PAIRS` (smaller calls padded to a power of two), a few queued ahead of the
         one read back. theta is padded to `batch_bucket(K)` rows.
         """
         E = model.size
-        d, inside = np.empty(E, np.float32), np.empty(E, bool)
+        d, inside, away = np.empty(E, np.float32), np.empty(E, bool), np.empty(E, bool)
         if E == 0:
-            return d, inside
+            return d, inside, away
         K = theta.shape[0]
         th = jnp.asarray(_pad_rows(theta, batch_bucket(K), theta[0]), self.dtype)
         args = (jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
@@ -259,18 +271,19 @@ class _Runner:
 
         def read(s, out):
             m = min(n, E - s)
-            d[s : s + m], inside[s : s + m] = np.asarray(out[0])[:m], np.asarray(out[1])[:m]
+            for dst, src in zip((d, inside, away), out):
+                dst[s : s + m] = np.asarray(src)[:m]
 
         pending = []
         for s in range(0, E, n):
             mi, pi = np.zeros(n, np.int32), np.zeros(n, np.int32)
             mi[: min(n, E - s)], pi[: min(n, E - s)] = model[s : s + n], point[s : s + n]
-            pending.append((s, _pair_distances(th, self.points, jnp.asarray(mi), jnp.asarray(pi), *args)))
+            pending.append((s, _pair_distances(th, self.points, self.views, jnp.asarray(mi), jnp.asarray(pi), *args)))
             if len(pending) > _QUEUE:
                 read(*pending.pop(0))
         for item in pending:
             read(*item)
-        return d, inside
+        return d, inside, away
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
@@ -359,7 +372,7 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
         theta = run.fit(regions, th0, steps)
         ok = np.isfinite(theta).all(1)
         theta = np.where(ok[:, None], theta, 0.0)
-        d, _ = run.distances(theta, model, point)
+        d, _, _ = run.distances(theta, model, point)
         explained = np.bincount(model, d < run.tau, len(regions)) / sizes
         rms = np.sqrt(np.bincount(model, np.minimum(d, 1e3).astype(np.float64) ** 2, len(regions)) / sizes)
         score = np.where(ok, explained - 1e-3 * rms / run.tau, -np.inf)
@@ -438,7 +451,7 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
     R = models.regions[act]
     cand = run.dom.dilate(R, opts.rings) & ~R
     k, p = np.nonzero(cand)
-    d, inside = run.distances(models.theta[act], k, p)
+    d, inside, _ = run.distances(models.theta[act], k, p)
     factor = np.where(models.loose[act], opts.admit_factor, 1.0)
     ok = inside & (d < factor[k] * run.tau)
     before = R.sum(1)
@@ -452,7 +465,7 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
     grown = grown[sel]
     new_theta = run.fit([np.flatnonzero(g) for g in grown], models.theta[act[sel]], opts.fit_steps)
     k, p = np.nonzero(grown)
-    d, _ = run.distances(np.nan_to_num(new_theta), k, p)
+    d, _, _ = run.distances(np.nan_to_num(new_theta), k, p)
     inl = d < run.tau
     kept = np.bincount(k[inl], minlength=sel.size)
     size = np.bincount(k, minlength=sel.size)

@@ -219,7 +219,8 @@ def log_inside_outside_local(x, log_size, epsilon):
 
 
 def log_inside_outside_and_gradient(x, log_size, epsilon):
-    """log F (eq. 5) of model-frame points x (..., 3) and log |grad log F| (...), in closed form.
+    """log F (eq. 5) of model-frame points x (..., 3), log |grad log F| (...) and the unit gradient
+    (..., 3) (the outward normal direction, model frame), in closed form.
 
     `log_size` (..., 3) and `epsilon` (..., 2) broadcast against the points. With A, B, C the terms
     (2 / e2) log|x / a1|, (2 / e2) log|y / a2|, (2 / e1) log|z / a3|, s = lse(A, B) and
@@ -235,7 +236,9 @@ def log_inside_outside_and_gradient(x, log_size, epsilon):
     u = s * (e2 / e1)
     t = jnp.logaddexp(u, C)
     log_g = jnp.stack([u - t + A - s, u - t + B - s, C - t], -1) - (lr + log_size) + jnp.log(2.0)
-    return e1 * t, 0.5 * jax.scipy.special.logsumexp(2.0 * log_g, axis=-1)
+    log_gnorm = 0.5 * jax.scipy.special.logsumexp(2.0 * log_g, axis=-1)
+    normal = jnp.where(x < 0, -1.0, 1.0) * jnp.exp(log_g - log_gnorm[..., None])
+    return e1 * t, log_gnorm, normal
 
 
 def inside_outside(sq: Superquadric, points):

@@ -209,8 +209,15 @@ def test_segmentation_distance_kernel_matches_eq10(size, eps):
     hard = _hard_points(sq)
     allp = jnp.concatenate([pts, hard])
     idx = jnp.arange(allp.shape[0], dtype=jnp.int32)
-    d, inside = _pair_distances(theta, allp, jnp.zeros_like(idx), idx, 1.15, 0.0)
+    views = allp / jnp.maximum(jnp.linalg.norm(allp, axis=1, keepdims=True), 1e-6)   # camera at the origin
+    d, inside, away = _pair_distances(theta, allp, views, jnp.zeros_like(idx), idx, 1.15, 0.0)
     assert bool(jnp.all(jnp.isfinite(d)))
+    # away: the outward normal (autodiff gradient of F) turns from the camera, n . view > 0.2
+    g = jax.vmap(jax.grad(lambda p: inside_outside(sq, p)))(pts)
+    cos = np.sum(np.asarray(g) * np.asarray(views[:500]), 1) / np.linalg.norm(np.asarray(g), axis=1)
+    sure = np.abs(cos - 0.2) > 1e-3
+    np.testing.assert_array_equal(np.asarray(away[:500])[sure], (cos > 0.2)[sure])
+    assert 0 < int(np.sum(cos > 0.2)) < 500                # both kinds among the samples
     np.testing.assert_allclose(d[:500], _jit_distance(sq, pts), rtol=2e-3, atol=1e-5)
     f_big = np.asarray(inside_outside(_sq(np.asarray(size) * 1.15, eps, {}), pts))
     clear = np.abs(f_big - 1.0) > 1e-3                   # not on the enlarged surface itself
