@@ -41,7 +41,8 @@ class SegmentOptions:
     - `reseed`: rounds of a second chance after the final selection: seed again where no selected model
       explains the data, grow those seeds and select among old and new (parts whose hypotheses lost
       early to a neighbour's). 0 = the paper's single pass.
-    - `merge`: try joining selected models whose union one superquadric explains (occlusion splits).
+    - `merge`: try joining selected models whose union one superquadric explains (occlusion splits),
+      as well as the two do (RMS eq. 10 distance).
     - `min_exclusive`: after the final selection, a model explaining less than this share of its
       region alone (the rest is also explained by others) is dropped as redundant.
     """
@@ -149,8 +150,15 @@ def _merge(run: _Runner, models: _Models, opts):
     theta, d, score = _fit_best(run, unions, opts.fit_steps, multistart=True)
     keep, regions, dist = [], [], []
     for k, ids in enumerate(unions):
+        # One model for the union must explain it (keep_fraction within tau) and no worse than the
+        # two do (RMS distance): one superquadric over two touching parts, such as a block standing on
+        # a cylinder, explains most of both, but worse than two.
         inl = d[k] < run.tau
-        if np.isfinite(score[k]) and inl.sum() >= opts.keep_fraction * ids.size:
+        i, j = pairs[k]
+        two = np.concatenate([models.dist[i], models.dist[j]])
+        rms = np.sqrt(np.mean(d[k][inl].astype(np.float64) ** 2)) if inl.any() else np.inf
+        if (np.isfinite(score[k]) and inl.sum() >= opts.keep_fraction * ids.size
+                and rms <= np.sqrt(np.mean(two.astype(np.float64) ** 2))):
             region = np.zeros(run.P, bool)
             region[ids[inl]] = True
             keep.append(k), regions.append(region), dist.append(d[k][inl])
@@ -253,14 +261,22 @@ def _finish(run: _Runner, models: _Models):
     models.take(order)
     flat = np.zeros(int(np.prod(run.dom.shape)), np.int32)
     if len(models.theta):
-        # each pixel to its nearest model; near-ties (within the noise) go to the larger part, so two
-        # almost coincident surfaces do not leave a speckle decided by noise
+        # Each pixel goes to its nearest model. A model explains a pixel from the camera's side, or
+        # with a face turned away from the camera (the underside of a block standing on another, the
+        # inside of a cup): the camera's side wins, by tau.
+        k, p = np.nonzero(models.regions)
+        _, _, away = run.distances(models.theta, k, p)
         d = np.full(models.regions.shape, np.inf, np.float32)
-        for i, di in enumerate(models.dist):
-            d[i, models.regions[i]] = di
-        near = d <= d.min(0) + run.noise
-        best = np.argmax(near, 0)                       # models are sorted largest first
+        d[k, p] = np.concatenate(models.dist) + np.where(away, run.tau, 0.0)
         has = np.isfinite(d.min(0))
+        best = np.argmin(d, 0)
+        # Two almost coincident surfaces leave a speckle decided by noise: a piece of a label smaller
+        # than a seed goes to the next nearest model that explains it.
+        for i in range(len(models.theta)):
+            for piece in free_components(has & (best == i), run.dom.neighbours, 1, run.opts.min_seed_points - 1):
+                d[i, piece] = np.inf
+                best[piece] = np.argmin(d[:, piece], 0)
+                has[piece] = np.isfinite(d[:, piece].min(0))
         flat[run.dom.index[has]] = best[has] + 1
     parts = []
     sqs = _to_world(models.theta, run.centre)
