@@ -54,6 +54,7 @@ class _Domain:
     shape: tuple                  # label output shape
     edges: np.ndarray | None = None   # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
     views: np.ndarray | None = None   # (P, 3) unit viewing rays (images), None = unknown (clouds)
+    seed_size: int = 0                # points in a full seed window
 
     def dilate(self, regions, rings: int):
         """Regions (M, P) bool grown by `rings` steps along the adjacency.
@@ -131,7 +132,7 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
         views = np.broadcast_to(np.array([0.0, 0.0, 1.0]), P.shape)
     else:
         views = P / np.linalg.norm(P, axis=1, keepdims=True)
-    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W), views)
+    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W), views, window * window)
 
 
 def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Domain:
@@ -147,7 +148,7 @@ def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Do
         centres.append(int(np.argmax(dmin)))
         dmin = np.minimum(dmin, np.linalg.norm(P - P[centres[-1]], axis=1))
     seeds = [ids for ids in _knn(P, window, P[centres]) if ids.size >= min_seed]
-    return _Domain(P, nb, seeds, np.arange(P.shape[0]), (P.shape[0],))
+    return _Domain(P, nb, seeds, np.arange(P.shape[0]), (P.shape[0],), seed_size=window)
 
 
 def _knn(P, k, queries=None, block=2048):
