@@ -178,9 +178,8 @@ def _pair_distances(theta, points, views, model, point, enlarge, margin):
     (P, 3) of the point; zero rays = unknown, never away).
 
     theta (K, 11), points (P, 3), model and point (E,) int32 -> (E,) distances, (E,) bool, (E,) bool.
-    Undeformed
-    models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|, which is
-    rotation-invariant, so it is evaluated in the model frame in closed form, without autodiff.
+    Undeformed models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|,
+    which is rotation-invariant, so it is evaluated in the model frame in closed form, without autodiff.
     """
     rot = jax.vmap(so3.exp)(theta[:, 5:8])
     th = theta[model]

@@ -41,8 +41,8 @@ class SegmentOptions:
     - `reseed`: rounds of a second chance after the final selection: seed again where no selected model
       explains the data, grow those seeds and select among old and new (parts whose hypotheses lost
       early to a neighbour's). 0 = the paper's single pass.
-    - `merge`: try joining selected models whose union one superquadric explains (occlusion splits),
-      as well as the two do (RMS eq. 10 distance).
+    - `merge`: try joining selected models whose union one superquadric explains (occlusion splits):
+      `keep_fraction` of each of the two regions within tau.
     - `min_exclusive`: after the final selection, a model explaining less than this share of its
       region alone (the rest is also explained by others) is dropped as redundant.
     """
