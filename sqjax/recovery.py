@@ -289,11 +289,12 @@ class _Runner:
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None.
 
-        One call of the batch kernel for all K regions, padded to (`batch_bucket(K)`, max_points).
+        One call of the batch kernel for all K regions, padded to `batch_bucket(K)` problems of 128,
+        256, ... up to max_points points (seed windows are small: no need to pad them to the cap).
         """
         K = len(regions)
         cap = self.opts.max_points
-        N, Kb = bucket(cap, 32), batch_bucket(K)
+        N, Kb = min(bucket(max(r.size for r in regions), 128), bucket(cap, 32)), batch_bucket(K)
         opts = FitOptions(max_steps=steps, multistart=theta0 is None)
         pts = np.zeros((Kb, N, 3))
         msk = np.zeros((Kb, N), bool)
