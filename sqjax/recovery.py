@@ -289,18 +289,19 @@ class _Runner:
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None.
 
-        One call of the batch kernel for all K regions, padded to `batch_bucket(K)` problems of 128,
-        256, ... up to max_points points (seed windows are small: no need to pad them to the cap).
+        One call of the batch kernel for all K regions, padded to `batch_bucket(K)` problems of 128
+        points when all regions fit (seed windows at 160x120 hold about 100), else of max_points.
         """
         K = len(regions)
-        cap = self.opts.max_points
-        N, Kb = min(bucket(max(r.size for r in regions), 128), bucket(cap, 32)), batch_bucket(K)
+        cap = bucket(self.opts.max_points, 32)
+        small = max(min(r.size, self.opts.max_points) for r in regions) <= 128
+        N, Kb = (min(128, cap) if small else cap), batch_bucket(K)
         opts = FitOptions(max_steps=steps, multistart=theta0 is None)
         pts = np.zeros((Kb, N, 3))
         msk = np.zeros((Kb, N), bool)
         for i, r in enumerate(regions):
-            if r.size > cap:
-                r = r[np.linspace(0, r.size - 1, cap).astype(np.int64)]
+            if r.size > self.opts.max_points:
+                r = r[np.linspace(0, r.size - 1, self.opts.max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
         pts[K:], msk[K:] = pts[0], msk[0]          # padding rows: copies of the first problem
         th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0, Kb, theta0[0]), self.dtype)
