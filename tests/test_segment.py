@@ -111,10 +111,11 @@ def test_one_kernel_call_per_growth_step_on_bucketed_shapes(monkeypatch):
     image, _ = paper_scene("two_cylinders", noise=0.002)
     seg = segment(image, merge=False)
     buckets = {recovery.batch_bucket(k) for k in range(1, 4097)}
-    assert all(shape[0] in buckets and shape[1] == 512 for shape, _ in calls)
+    # points: 128 when every region fits (seed windows), else max_points = 512
+    assert all(shape[0] in buckets and shape[1] in (128, 512) for shape, _ in calls)
     seed_calls = 3                               # the three starts of every seed, each one batch
     assert len(calls) <= seed_calls + seg.stats["growth_steps"]
-    assert len({shape for shape, _ in calls}) <= 6
+    assert len({shape for shape, _ in calls}) <= 6, sorted({shape for shape, _ in calls})
 
 
 def test_free_components_follow_the_adjacency():
