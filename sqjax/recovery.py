@@ -171,21 +171,21 @@ def _knn(P, k, queries=None, block=2048):
 
 
 @jax.jit
-def _pair_distances(theta, points, views, model, point, enlarge, margin):
-    """Eq. 10 distance of `points[point[e]]` to the model `theta[model[e]]`, whether the point
+def _pair_distances(theta, points, views, point, enlarge, margin):
+    """Eq. 10 distance of `points[point[e]]` to the model `theta[e]`, whether the point
     lies inside that model enlarged (a1..a3 times `enlarge`, plus `margin`), and whether the model's
     outward normal there turns away from the camera (n . view > 0.2 for the unit viewing ray `views`
     (P, 3) of the point; zero rays = unknown, never away).
 
-    theta (K, 11), points (P, 3), model and point (E,) int32 -> (E,) distances, (E,) bool, (E,) bool.
+    theta (E, 11) (one row per pair: the shapes depend on E only), points (P, 3), point (E,) int32
+    -> (E,) distances, (E,) bool, (E,) bool.
     Undeformed models only (segmentation fits none): |F - 1| / |grad F| = |1 - 1/F| / |grad log F|,
     which is rotation-invariant, so it is evaluated in the model frame in closed form, without autodiff.
     """
     rot = jax.vmap(so3.exp)(theta[:, 5:8])
-    th = theta[model]
-    x = jnp.einsum("ei,eij->ej", points[point] - th[:, 8:11], rot[model])
-    view = jnp.einsum("ei,eij->ej", views[point], rot[model])
-    la, e = th[:, 0:3], th[:, 3:5]
+    x = jnp.einsum("ei,eij->ej", points[point] - theta[:, 8:11], rot)
+    view = jnp.einsum("ei,eij->ej", views[point], rot)
+    la, e = theta[:, 0:3], theta[:, 3:5]
     log_f, log_gnorm, normal = log_inside_outside_and_gradient(x, la, e)
     lf = jnp.where(log_f == 0.0, 1e-30, log_f)            # safe operand: F = 1 gives d = 0 below
     log_num = jnp.where(lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
@@ -258,14 +258,14 @@ class _Runner:
 
         Only the pairs asked for are computed (a region and the ring around it, not every point), in
         fixed chunks of `_PAIRS` (smaller calls padded to a power of two), a few queued ahead of the
-        one read back. theta is padded to `batch_bucket(K)` rows.
+        one read back. Each pair gets its model's row of theta, gathered here, so the kernel compiles
+        once per chunk size whatever the number of models.
         """
         E = model.size
         d, inside, away = np.empty(E, np.float32), np.empty(E, bool), np.empty(E, bool)
         if E == 0:
             return d, inside, away
-        K = theta.shape[0]
-        th = jnp.asarray(_pad_rows(theta, batch_bucket(K), theta[0]), self.dtype)
+        theta = np.asarray(theta, np.dtype(self.dtype))
         args = (jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
         n = min(_PAIRS, bucket(E, 1024))
 
@@ -276,9 +276,10 @@ class _Runner:
 
         pending = []
         for s in range(0, E, n):
-            mi, pi = np.zeros(n, np.int32), np.zeros(n, np.int32)
+            mi, pi = np.zeros(n, np.int64), np.zeros(n, np.int32)
             mi[: min(n, E - s)], pi[: min(n, E - s)] = model[s : s + n], point[s : s + n]
-            pending.append((s, _pair_distances(th, self.points, self.views, jnp.asarray(mi), jnp.asarray(pi), *args)))
+            th = jnp.asarray(theta[mi], self.dtype)
+            pending.append((s, _pair_distances(th, self.points, self.views, jnp.asarray(pi), *args)))
             if len(pending) > _QUEUE:
                 read(*pending.pop(0))
         for item in pending:

@@ -210,7 +210,7 @@ def test_segmentation_distance_kernel_matches_eq10(size, eps):
     allp = jnp.concatenate([pts, hard])
     idx = jnp.arange(allp.shape[0], dtype=jnp.int32)
     views = allp / jnp.maximum(jnp.linalg.norm(allp, axis=1, keepdims=True), 1e-6)   # camera at the origin
-    d, inside, away = _pair_distances(theta, allp, views, jnp.zeros_like(idx), idx, 1.15, 0.0)
+    d, inside, away = _pair_distances(jnp.repeat(theta, idx.size, 0), allp, views, idx, 1.15, 0.0)
     assert bool(jnp.all(jnp.isfinite(d)))
     # away: the outward normal (autodiff gradient of F) turns from the camera, n . view > 0.2
     g = jax.vmap(jax.grad(lambda p: inside_outside(sq, p)))(pts)
