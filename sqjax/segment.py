@@ -263,9 +263,9 @@ def _finish(run: _Runner, models: _Models):
         # with a face turned away from the camera (the underside of a block standing on another, the
         # inside of a cup): the camera's side wins, by tau.
         k, p = np.nonzero(models.regions)
-        _, _, away = run.distances(models.theta, k, p)
+        dk, _, away = run.distances(models.theta, k, p)
         d = np.full(models.regions.shape, np.inf, np.float32)
-        d[k, p] = np.concatenate(models.dist) + np.where(away, run.tau, 0.0)
+        d[k, p] = dk + np.where(away, run.tau, 0.0)
         has = np.isfinite(d.min(0))
         # Distances are compared after a local mean along the adjacency (capped at 2 tau), over a
         # radius of a tenth of a seed window: systematic differences decide, not single pixels' noise.

@@ -226,8 +226,8 @@ def log_inside_outside_and_gradient(x, log_size, epsilon):
     (2 / e2) log|x / a1|, (2 / e2) log|y / a2|, (2 / e1) log|z / a3|, s = lse(A, B) and
     t = lse(e2 / e1 s, C): d log F / dx = 2 w_t w_s / x, d / dy = 2 w_t (1 - w_s) / y,
     d / dz = 2 (1 - w_t) / z, with w the softmax weights of the two log-sum-exps. Everything stays in
-    logs on the safe operand of `log_inside_outside_xyz`, so both are finite at the centre, on the
-    axes and far away. For kernels that need no autodiff (the eq. 10 distances of segmentation).
+    logs on the safe operand of `log_inside_outside_xyz`, so all three are finite at the centre, on
+    the axes and far away. For kernels that need no autodiff (the eq. 10 distances of segmentation).
     """
     e1, e2 = epsilon[..., 0], epsilon[..., 1]
     lr = _log_ratio(x, log_size)
