@@ -8,7 +8,8 @@ import trimesh
 
 from sqjax import Superquadric, contains, inside_outside, sample_surface
 from sqjax.rangeimage import OrthographicCamera, PinholeCamera
-from sqjax.scenes import ARRANGEMENTS, PAPER_SCENES, default_camera, paper_scene, random_scene, render
+from sqjax.scenes import (ARRANGEMENTS, OBJECTS, PAPER_SCENES, default_camera, multipart_scene, paper_scene,
+                          random_scene, render)
 
 SHAPE = (60, 80)
 
@@ -190,3 +191,21 @@ def test_render_non_convex_part():
     assert image.valid.sum() > 100 and np.isfinite(image.depth[image.valid]).all()
     F = np.asarray(_inside_outside(star, _padded(star, image.points[image.valid])))[: image.valid.sum()]
     assert np.median(np.abs(F - 1)) < 1e-3 and np.abs(F - 1).max() < 0.2
+
+
+@pytest.mark.parametrize("kind", OBJECTS)
+def test_multipart_objects_show_their_parts(kind):
+    """Every multi-part object renders deterministically with one label per part, and at least two
+    of its parts visible (>= 30 pixels) in the first view."""
+    image, parts = multipart_scene(0, kind)
+    again, _ = multipart_scene(0, kind)
+    np.testing.assert_array_equal(image.labels, again.labels)
+    counts = np.bincount(image.labels.ravel(), minlength=len(parts) + 1)
+    assert len(counts) == len(parts) + 1 and np.sum(counts[1:] >= 30) >= 2
+    # every labelled pixel lies on its part's surface (before noise): F ~ 1 there
+    clean, _ = multipart_scene(0, kind, noise=0.0)
+    pts = clean.points[clean.labels > 0]
+    lab = clean.labels[clean.labels > 0]
+    for i, sq in enumerate(parts):
+        f = np.asarray(inside_outside(sq, pts[lab == i + 1]))
+        assert f.size == 0 or np.median(np.abs(f - 1)) < 1e-2
