@@ -55,6 +55,7 @@ class _Domain:
     edges: np.ndarray | None = None   # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
     views: np.ndarray | None = None   # (P, 3) unit viewing rays (images), None = unknown (clouds)
     seed_size: int = 0                # points in a full seed window
+    noise_model: tuple | None = None  # (k, z_ref): local noise / reference noise = (z / z_ref)^k
 
     def dilate(self, regions, rings: int):
         """Regions (M, P) bool grown by `rings` steps along the adjacency.
@@ -93,6 +94,33 @@ def estimate_noise(image: RangeImage) -> float:
     return float(max(sigma, 1e-4 * np.nanmedian(np.abs(z))))
 
 
+def noise_exponent(depth: np.ndarray, sigma: np.ndarray, bins: int = 5) -> float:
+    """The exponent k of a depth-noise model sigma(z) = sigma_ref (z / z_ref)^k, from local residuals.
+
+    `depth` (S,) and `sigma` (S,): the depth of each seed window and the robust std of its fit's
+    residuals. Structured-light and stereo depth noise grows about as z^2 (Khoshelham & Elberink
+    2012); one noise at every depth gives 0. A seed's residual is the noise plus its model's error
+    (an edge, a curved patch), so the noise at a depth is the floor of the residuals there: the
+    seeds are put in `bins` depth quantiles, the lower quartile of sigma taken in each, and k is the
+    least-squares slope of its log against log depth, clipped to [0, 2]. Fewer than 8 seeds per bin
+    or a depth range under 20% give 0."""
+    ok = np.isfinite(depth) & np.isfinite(sigma) & (depth > 0) & (sigma > 0)
+    lz, ls = np.log(depth[ok]), np.log(sigma[ok])
+    bins = min(bins, lz.size // 8)
+    if bins < 3 or lz.max() - lz.min() < np.log(1.2):
+        return 0.0
+    order = np.argsort(lz)
+    groups = np.array_split(order, bins)
+    x = np.array([np.median(lz[g]) for g in groups])
+    y = np.array([np.quantile(ls[g], 0.25) for g in groups])
+    return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, 2.0))
+
+
+def noise_scale(points: np.ndarray, k: float, z_ref: float) -> np.ndarray:
+    """(z / z_ref)^k of camera-frame points (P, 3): their noise in units of the noise at depth z_ref."""
+    return (np.abs(points[:, 2]) / z_ref) ** k
+
+
 def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_seed) -> _Domain:
     H, W = image.shape
     valid = image.valid
@@ -128,18 +156,22 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
                 seeds.append(ids)
     edges = np.zeros((len(offs), H * W), bool)
     edges[:, flat] = (nb >= 0).T
+    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W), viewing_rays(image, P), window * window)
+
+
+def viewing_rays(image: RangeImage, P: np.ndarray) -> np.ndarray:
+    """Unit viewing rays (P, 3) of camera-frame points P (P, 3) of `image`."""
     if isinstance(image.camera, OrthographicCamera):
-        views = np.broadcast_to(np.array([0.0, 0.0, 1.0]), P.shape)
-    else:
-        views = P / np.linalg.norm(P, axis=1, keepdims=True)
-    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W), views, window * window)
+        return np.broadcast_to(np.array([0.0, 0.0, 1.0]), P.shape)
+    return P / np.linalg.norm(P, axis=1, keepdims=True)
 
 
-def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Domain:
+def _cloud_domain(points: np.ndarray, rows: np.ndarray, n_rows: int, nb: np.ndarray, window: int,
+                  min_seed: int) -> _Domain:
+    """Points (P, 3) that are rows `rows` of an (n_rows, 3) input; nb (P, k) their nearest neighbours."""
     P = np.asarray(points, np.float64)
-    nb = _knn(P, k)
-    d = np.linalg.norm(P[nb] - P[:, None], axis=-1)
-    nb = np.where(d > 4.0 * np.median(d), -1, nb)
+    d = np.linalg.norm(P[np.maximum(nb, 0)] - P[:, None], axis=-1)
+    nb = np.where((nb < 0) | (d > 4.0 * np.median(d[nb >= 0])), -1, nb)
     # seeds: farthest-point samples, each with its `window` nearest points
     n_seeds = max(1, min(256, P.shape[0] // max(window, 1)))
     centres = [0]
@@ -147,23 +179,29 @@ def _cloud_domain(points: np.ndarray, k: int, window: int, min_seed: int) -> _Do
     for _ in range(n_seeds - 1):
         centres.append(int(np.argmax(dmin)))
         dmin = np.minimum(dmin, np.linalg.norm(P - P[centres[-1]], axis=1))
-    seeds = [ids for ids in _knn(P, window, P[centres]) if ids.size >= min_seed]
-    return _Domain(P, nb, seeds, np.arange(P.shape[0]), (P.shape[0],), seed_size=window)
+    seeds = [ids[ids >= 0] for ids in _knn(P, window, P[centres])]
+    seeds = [ids for ids in seeds if ids.size >= min_seed]
+    return _Domain(P, nb, seeds, rows, (n_rows,), seed_size=window)
 
 
-def _knn(P, k, queries=None, block=2048):
-    """k nearest neighbours (excluding the query itself when queries is None), brute force in blocks."""
-    Q = P if queries is None else queries
-    k_eff = min(k + (queries is None), P.shape[0])
-    out = np.empty((Q.shape[0], k_eff), np.int64)
-    sq = np.sum(P * P, 1)
-    for s in range(0, Q.shape[0], block):
-        q = Q[s : s + block]
-        d = sq[None] - 2 * q @ P.T + np.sum(q * q, 1)[:, None]
-        idx = np.argpartition(d, k_eff - 1, axis=1)[:, :k_eff]
-        order = np.take_along_axis(d, idx, 1).argsort(1)
-        out[s : s + block] = np.take_along_axis(idx, order, 1)
-    return out[:, 1:] if queries is None else out
+def _knn(P, k, queries=None):
+    """Indices (Q, k) of the k nearest points of P (P, 3) to each query (Q, 3), nearest first, by a
+    k-d tree (O(P log P)). queries=None: the neighbours of every point of P, itself excluded (also when
+    duplicates tie with it). Fewer than k points: the columns past P are -1."""
+    from scipy.spatial import cKDTree
+
+    own = queries is None
+    Q = P if own else queries
+    k_eff = min(k + own, P.shape[0])
+    _, idx = cKDTree(P).query(Q, k_eff)
+    idx = np.asarray(idx, np.int64).reshape(Q.shape[0], k_eff)
+    if own:   # drop the query itself (or, if duplicates pushed it out, the farthest)
+        is_self = idx == np.arange(Q.shape[0])[:, None]
+        drop = np.where(is_self.any(1), is_self.argmax(1), k_eff - 1)
+        keep = np.ones_like(idx, bool)
+        keep[np.arange(Q.shape[0]), drop] = False
+        idx = idx[keep].reshape(Q.shape[0], k_eff - 1)
+    return np.pad(idx, ((0, 0), (0, k - idx.shape[1])), constant_values=-1) if idx.shape[1] < k else idx
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -193,6 +231,28 @@ def _pair_distances(theta, points, views, point, enlarge, margin):
     d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
     big, _, _ = log_inside_outside_and_gradient(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
     return d, big <= 0.0, jnp.sum(normal * view, -1) > 0.2
+
+
+_RAY_SAMPLES = 16
+
+
+@jax.jit
+def _free_space(theta, points, views, point, margin):
+    """Whether the model `theta[e]` occupies the free space in front of the point `points[point[e]]`:
+    any of `_RAY_SAMPLES` samples on its viewing ray, from `margin[e]` in front of the point back to the
+    near side of the model's bounding sphere, lies inside the model (log F < 0, eq. 5). The camera saw
+    through there, so a model that fills it is contradicted by the data. theta (E, 11), points (P, 3),
+    views (P, 3) unit rays, point (E,) int32, margin (E,) -> (E,) bool."""
+    rot = jax.vmap(so3.exp)(theta[:, 5:8])
+    p, v, c = points[point], views[point], theta[:, 8:11]
+    radius = jnp.sqrt(jnp.sum(jnp.exp(2.0 * theta[:, 0:3]), -1))
+    reach = jnp.sum((p - c) * v, -1) + radius                 # how far back towards the camera to look
+    frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
+    back = margin[:, None] + jnp.maximum(reach - margin, 0.0)[:, None] * frac    # (E, S)
+    q = p[:, None] - back[..., None] * v[:, None]
+    x = jnp.einsum("esi,eij->esj", q - c[:, None], rot)
+    log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, 0:3], theta[:, None, 3:5])
+    return jnp.any(log_f < 0.0, -1) & (reach > margin)
 
 
 def _pad_rows(a, n, fill):
@@ -236,9 +296,13 @@ class _Models:
 
 
 class _Runner:
-    def __init__(self, dom: _Domain, opts: SegmentOptions, noise: float, tau: float, dtype):
+    def __init__(self, dom: _Domain, opts: SegmentOptions, noise: float, tau: float, dtype, centre=None):
         self.dom, self.opts, self.noise, self.tau, self.dtype = dom, opts, noise, tau, dtype
-        self.centre = dom.points.mean(0)
+        # per point: the local noise over the reference noise (`noise_exponent`); distances are divided
+        # by it, so that tau and the selection weights count in units of the local noise
+        self.scale = None if dom.noise_model is None else noise_scale(dom.points, *dom.noise_model).astype(np.float32)
+        # the frame of the models: the median of the points (one far outlier does not move it)
+        self.centre = np.median(dom.points, 0) if centre is None else np.asarray(centre, np.float64)
         self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
         Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
         self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.zeros(3)), dtype)
@@ -246,6 +310,10 @@ class _Runner:
         self.views = jnp.asarray(_pad_rows(views, Pn, np.zeros(3)), dtype)
         self.P = dom.points.shape[0]
         self.margin = 2.0 * tau
+
+    def set_noise_model(self, k: float, z_ref: float):
+        self.dom.noise_model = (k, z_ref)
+        self.scale = noise_scale(self.dom.points, k, z_ref).astype(np.float32)
 
     def set_noise(self, noise):
         self.noise, self.tau = noise, self.opts.threshold_factor * noise
@@ -284,7 +352,43 @@ class _Runner:
                 read(*pending.pop(0))
         for item in pending:
             read(*item)
+        if self.scale is not None:
+            d /= self.scale[point]
         return d, inside, away
+
+    def free_space_violations(self, theta) -> np.ndarray:
+        """(M,) for models theta (M, 11): the valid points whose viewing ray passes through the model
+        in front of them (by more than tau, in units of the local noise; `_free_space`). Candidates
+        are the points whose ray passes within the model's bounding sphere, in front of the point.
+        Images only (clouds have no viewpoint): zeros otherwise."""
+        M = len(theta)
+        out = np.zeros(M, np.int64)
+        if self.dom.views is None or M == 0:
+            return out
+        P, v = self.host_points, self.dom.views
+        c = theta[:, 8:11]
+        radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, 0:3]), -1))
+        pairs_m, pairs_p = [], []
+        for i in range(M):
+            w = P - c[i]
+            t = np.einsum("pj,pj->p", w, v)                   # > 0: the model's centre is in front of p
+            perp2 = np.einsum("pj,pj->p", w, w) - t * t
+            cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > self.tau))
+            pairs_m.append(np.full(cand.size, i)), pairs_p.append(cand)
+        model, point = np.concatenate(pairs_m), np.concatenate(pairs_p)
+        if model.size == 0:
+            return out
+        margin = self.tau * (np.ones(point.size) if self.scale is None else self.scale[point])
+        theta_d = np.asarray(theta, np.dtype(self.dtype))
+        n = min(_PAIRS, bucket(model.size, 1024))
+        hit = np.zeros(model.size, bool)
+        for s in range(0, model.size, n):
+            m = min(n, model.size - s)
+            mi, pi, mg = np.zeros(n, np.int64), np.zeros(n, np.int32), np.zeros(n)
+            mi[:m], pi[:m], mg[:m] = model[s : s + m], point[s : s + m], margin[s : s + m]
+            hit[s : s + m] = np.asarray(_free_space(jnp.asarray(theta_d[mi]), self.points, self.views,
+                                                    jnp.asarray(pi), jnp.asarray(mg, self.dtype)))[:m]
+        return np.bincount(model[hit], minlength=M)
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
@@ -400,9 +504,17 @@ def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
     if first and opts.adaptive_noise and opts.noise is None and opts.threshold is None:
         # Real surfaces are not exact superquadrics: take the noise as at least the typical residual
         # of the seed fits (robust: median over seeds of the median absolute distance / 0.6745).
-        per_seed = [np.median(d[i]) / 0.6745 for i in range(len(seeds)) if np.isfinite(score[i])]
-        if per_seed:
-            run.set_noise(max(run.noise, float(np.median(per_seed))))
+        fitted = np.flatnonzero(np.isfinite(score))
+        sigma = np.array([np.median(d[i]) / 0.6745 for i in fitted])
+        if fitted.size:
+            if run.dom.edges is not None and opts.noise_exponent is None and run.scale is None:
+                # images: how the seeds' residuals grow with depth gives the sensor's noise model
+                depth = np.array([np.median(np.abs(run.dom.points[seeds[i], 2])) for i in fitted])
+                k = noise_exponent(depth, sigma)
+                if k > 0:
+                    run.set_noise_model(k, float(np.median(np.abs(run.dom.points[:, 2]))))
+                    sigma = sigma / (depth / run.dom.noise_model[1]) ** k
+            run.set_noise(max(run.noise, float(np.median(sigma))))
             model, point = _pairs(seeds)
             d = _split(run.distances(theta, model, point)[0], model, len(seeds))
     regions = np.zeros((len(seeds), run.P), bool)
@@ -499,11 +611,15 @@ def _domain(data, opts: SegmentOptions, k: int):
         window = opts.window or int(np.clip(round(min(H, W) / 12), 4, 32))
         window = min(window, H, W)
         stride = opts.stride or max(window // 2, 1)
-        return _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points), noise, tau
+        dom = _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points)
+        if opts.noise_exponent:   # else the seeds estimate it (`_seed`), or it is 0
+            dom.noise_model = (opts.noise_exponent, float(np.median(np.abs(dom.points[:, 2]))))
+        return dom, noise, tau
     pts = np.asarray(data, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"segment: expected a RangeImage or an (P, 3) array, got shape {pts.shape}")
-    pts = pts[np.isfinite(pts).all(1)]
+    rows = np.flatnonzero(np.isfinite(pts).all(1))
+    n_rows, pts = pts.shape[0], pts[rows]
     if pts.shape[0] < opts.min_seed_points:
         raise ValueError(f"segment: {pts.shape[0]} valid points; at least {opts.min_seed_points} are needed")
     nb = _knn(pts, k)
@@ -511,4 +627,4 @@ def _domain(data, opts: SegmentOptions, k: int):
     noise = opts.noise if opts.noise is not None else float(max(spacing / 4, 1e-12))
     tau = opts.threshold if opts.threshold is not None else opts.threshold_factor * noise
     window = opts.window or max(opts.min_seed_points, 48)
-    return _cloud_domain(pts, k, window, opts.min_seed_points), noise, tau
+    return _cloud_domain(pts, rows, n_rows, nb, window, opts.min_seed_points), noise, tau

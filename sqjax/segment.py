@@ -15,8 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .fitting import bucket, to_superquadric
-from .recovery import NUM_PARAMS, _domain, _fit_best, _grow, _Models, _pad_rows, _Runner, _seed, free_components
-from .selection import SelectionWeights, build_q, select
+from .rangeimage import RangeImage
+from .recovery import (NUM_PARAMS, _domain, _Domain, _fit_best, _grow, _Models, _pad_rows, _Runner, _seed,
+                       free_components, viewing_rays)
+from .selection import SELECTORS, SelectionWeights, build_q, select
 from .superquadric import Superquadric
 
 
@@ -45,6 +47,19 @@ class SegmentOptions:
       `keep_fraction` of each of the two regions within tau.
     - `min_exclusive`: after the final selection, a model explaining less than this share of its
       region alone (the rest is also explained by others) is dropped as redundant.
+    - `subsample`: range images are segmented at every `subsample`-th row and column, then every pixel
+      of the input is labelled by the final models (the paper subsampled its dense images). None =
+      the step that brings the image nearest to `WORKING_PIXELS` (160 x 120, the resolution every
+      default here was measured at: 640 x 480 -> 4); 1 = the slow exact path at full resolution.
+    - `noise_exponent`: range images: the depth noise is sigma(z) = noise (z / z_median)^k and every
+      distance is compared in units of the local sigma; None = k estimated with the noise, from how the
+      seed fits' residuals grow with their depth (`recovery.noise_exponent`: about 2 for structured
+      light, 0 for one noise at every depth); 0 = one noise for the whole image.
+    - `free_space`: visibility in selection (range images): a model that fills space in front of an
+      observed point (the camera saw through it) pays `free_space` * K1 per such point, as much as
+      an explained point earns; 0 = the paper's selection.
+    - `rings`: None = 4 per 160 pixels of working-image width and height (sqrt of the area ratio), so
+      that growth per step scales with the image.
     """
 
     noise: float | None = None
@@ -57,7 +72,7 @@ class SegmentOptions:
     seed_inlier_fraction: float = 0.9
     enlarge: float = 1.15
     admit_factor: float = 3.0
-    rings: int = 4
+    rings: int | None = None
     keep_fraction: float = 0.9
     select_every: int = 3
     max_steps: int = 60
@@ -69,17 +84,79 @@ class SegmentOptions:
     reseed: int = 2
     min_exclusive: float = 0.2
     jump_factor: float = 4.0
+    subsample: int | None = None
+    noise_exponent: float | None = None
+    free_space: float = 1.0
+
+    def __post_init__(self):
+        def bad(name, want):
+            raise ValueError(f"SegmentOptions: {name} must be {want}, got {getattr(self, name)!r}")
+
+        def number(name, lo=None, hi=None, *, integer=False, optional=False, lo_open=False):
+            v = getattr(self, name)
+            if v is None and optional:
+                return
+            want = ("an integer" if integer else "a finite number") + (" or None" if optional else "")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer) if integer else (int, float, np.number)):
+                bad(name, want)
+            if not np.isfinite(v):
+                bad(name, want)
+            if lo is not None and (v <= lo if lo_open else v < lo):
+                bad(name, f"{'>' if lo_open else '>='} {lo}")
+            if hi is not None and v > hi:
+                bad(name, f"<= {hi}")
+
+        for name in ("noise", "threshold"):
+            number(name, 0, optional=True, lo_open=True)
+        number("threshold_factor", 0, lo_open=True)
+        number("min_seed_points", NUM_PARAMS + 1, integer=True)
+        number("window", 1, integer=True, optional=True)
+        if self.window is not None and self.window * self.window < self.min_seed_points:
+            bad("window", f"at least {int(np.ceil(np.sqrt(self.min_seed_points)))} (a seed window of "
+                f"window^2 pixels must hold min_seed_points = {self.min_seed_points})")
+        number("stride", 1, integer=True, optional=True)
+        number("seed_inlier_fraction", 0, 1, lo_open=True)
+        number("enlarge", 1)
+        number("admit_factor", 1)
+        number("rings", 1, integer=True, optional=True)
+        number("subsample", 1, integer=True, optional=True)
+        number("noise_exponent", 0, 4, optional=True)
+        number("free_space", 0)
+        number("keep_fraction", 0, 1, lo_open=True)
+        number("select_every", 1, integer=True)
+        number("max_steps", 0, integer=True)
+        number("max_points", self.min_seed_points, integer=True)
+        number("fit_steps", 1, integer=True)
+        number("reseed", 0, integer=True)
+        number("min_exclusive", 0, 1)
+        number("jump_factor", 0, lo_open=True)
+        if self.selector not in SELECTORS:
+            bad("selector", f"one of {SELECTORS}")
+        if self.weights is not None and not isinstance(self.weights, SelectionWeights):
+            bad("weights", "a SelectionWeights or None")
+        for name in ("adaptive_noise", "merge"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                bad(name, "True or False")
 
 
 @dataclasses.dataclass(frozen=True)
 class Part:
-    """One selected model: `superquadric`, its `region` (flat pixel indices, or point indices for
-    clouds), `error` (sum of squared eq. 10 distances over the region), `num_points`."""
+    """One selected model.
+
+    - `superquadric`: the model, in the data's frame and units.
+    - `region`: the points it explains (eq. 10 distance within tau): flat pixel indices (images) or row
+      indices of the input (clouds). Regions of two parts may overlap, where both explain the data.
+    - `error`: sum of squared eq. 10 distances over the region.
+    - `num_points`: pixels (points) labelled with this part: each goes to its nearest part, so this is
+      at most `num_explained`, and always > 0.
+    - `num_explained`: `region.size`.
+    """
 
     superquadric: Superquadric
     region: np.ndarray
     error: float
     num_points: int
+    num_explained: int
 
 
 @dataclasses.dataclass
@@ -102,8 +179,8 @@ class Segmentation:
 
     def to_dict(self) -> dict:
         return {
-            "parts": [{**p.superquadric.to_dict(), "num_points": int(p.num_points), "error": float(p.error)}
-                      for p in self.parts],
+            "parts": [{**p.superquadric.to_dict(), "num_points": int(p.num_points),
+                       "num_explained": int(p.num_explained), "error": float(p.error)} for p in self.parts],
             "noise": float(self.noise), "threshold": float(self.threshold),
             "timings": self.timings, "stats": self.stats,
         }
@@ -113,9 +190,12 @@ class Segmentation:
 # the data: points, adjacency (image grid or k nearest neighbours), seeds
 
 
-def _select(models: _Models, tau, opts, weights):
+def _select(run: _Runner, models: _Models, tau, opts, weights):
     d2 = [np.minimum(d, tau) ** 2 for d in models.dist]
     Q = build_q(models.regions, d2, np.full(len(models.theta), NUM_PARAMS), weights)
+    if opts.free_space > 0:
+        # visibility: every point the camera saw through the model costs what an explained one earns
+        Q[np.diag_indices_from(Q)] -= opts.free_space * weights.k1 * run.free_space_violations(models.theta)
     m, stats = select(Q, opts.selector)
     return m, stats
 
@@ -142,8 +222,7 @@ def _prune_redundant(models: _Models, min_exclusive: float) -> int:
 
 def _merge(run: _Runner, models: _Models, opts):
     """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits)."""
-    M = len(models.theta)
-    pairs = [(i, j) for i in range(M) for j in range(i + 1, M)]
+    pairs = _merge_candidates(run.host_points, models.regions)
     if not pairs:
         return models
     unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
@@ -167,6 +246,25 @@ def _merge(run: _Runner, models: _Models, opts):
     return out
 
 
+MERGE_NEIGHBOURS = 4
+
+
+def _merge_candidates(points: np.ndarray, regions: np.ndarray) -> list:
+    """Pairs (i, j), i < j, of models worth a union fit: every pair when there are few models, else each
+    model with its `MERGE_NEIGHBOURS` nearest (gap between the regions' bounding spheres), so that the
+    union fits grow linearly with the number of models, not quadratically (a scene of hundreds of
+    selected pieces must not cost tens of thousands of fits). Points (P, 3), regions (M, P) bool."""
+    M = len(regions)
+    if M <= 2 * MERGE_NEIGHBOURS + 1:
+        return [(i, j) for i in range(M) for j in range(i + 1, M)]
+    centre = np.stack([points[r].mean(0) for r in regions])
+    radius = np.array([np.linalg.norm(points[r] - c, axis=1).max() for r, c in zip(regions, centre)])
+    gap = np.linalg.norm(centre[:, None] - centre[None], axis=-1) - radius[:, None] - radius[None]
+    np.fill_diagonal(gap, np.inf)
+    near = np.argsort(gap, 1, kind="stable")[:, :MERGE_NEIGHBOURS]
+    return sorted({(min(i, j), max(i, j)) for i in range(M) for j in near[i]})
+
+
 @jax.jit
 def _world(theta, centre) -> Superquadric:
     """(M, 11) centred parameters -> batched `Superquadric` in the data's frame."""
@@ -186,19 +284,32 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
 
     **Returns:** a `Segmentation` (parts, label image, history, timings).
     """
+    if options is not None and kw:
+        raise TypeError(f"segment: pass options= or keyword options, not both (got {sorted(kw)})")
     opts = options if options is not None else SegmentOptions(**kw)
     t_start = time.perf_counter()
     compile_start = _COMPILE_SECONDS[0]
+    full, step = None, 1
+    if isinstance(data, RangeImage):
+        step = opts.subsample or working_step(data.shape)
+        if step > 1:
+            full, data = data, data.subsample(step)
+        if opts.rings is None:
+            H, W = data.shape
+            opts = dataclasses.replace(opts, rings=max(1, round(4 * np.sqrt(H * W / WORKING_PIXELS))))
+    elif opts.rings is None:
+        opts = dataclasses.replace(opts, rings=4)
     dom, noise, tau = _domain(data, opts, k)
     run = _Runner(dom, opts, noise, tau, jnp.float32)
     models = _seed(run, opts)
     noise, tau = run.noise, run.tau
     weights = opts.weights or SelectionWeights.for_threshold(tau)
     history, stats = [], {"seeds": len(dom.seeds), "seed_models": len(models.theta), "selections": 0,
-                          "greedy_worse": 0, "growth_steps": 0, "reseeded": 0}
+                          "greedy_worse": 0, "growth_steps": 0, "reseeded": 0,
+                          "noise_exponent": dom.noise_model[0] if dom.noise_model else 0.0}
 
     def select_(models):
-        m, st = _select(models, tau, opts, weights)
+        m, st = _select(run, models, tau, opts, weights)
         stats["selections"] += 1
         stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
         models.take(m)
@@ -247,6 +358,9 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         recover_and_select(models, opts.max_steps)
         models = final_selection(models)
     parts, labels = _finish(run, models)
+    if full is not None:
+        parts, labels = _label_full(full, step, run, models, labels)
+    stats["subsample"] = step
     history = [_to_world(h, run.centre) for h in history]
     total = time.perf_counter() - t_start
     compile_s = _COMPILE_SECONDS[0] - compile_start
@@ -283,13 +397,74 @@ def _finish(run: _Runner, models: _Models):
                 near[i, piece] = np.inf
                 best[piece] = np.argmin(near[:, piece], 0)
                 has[piece] = np.isfinite(near[:, piece].min(0))
-        flat[run.dom.index[has]] = best[has] + 1
+        # A model whose every pixel went to a nearer one is not a part of the label image: drop it, so
+        # that parts and labels agree (label i + 1 = parts[i], and every part owns labelled pixels).
+        count = np.bincount(best[has], minlength=len(models.theta))
+        owns = np.flatnonzero(count > 0)
+        relabel = np.zeros(len(models.theta), np.int32)
+        relabel[owns] = np.arange(1, owns.size + 1)
+        flat[run.dom.index[has]] = relabel[best[has]]
+        models.take(owns)
+        count = count[owns]
     parts = []
     sqs = _to_world(models.theta, run.centre)
     for i, sq in enumerate(sqs):
         reg = np.flatnonzero(models.regions[i])
-        parts.append(Part(sq, run.dom.index[reg], float(np.sum(models.dist[i].astype(np.float64) ** 2)), int(reg.size)))
+        parts.append(Part(sq, run.dom.index[reg], float(np.sum(models.dist[i].astype(np.float64) ** 2)),
+                          int(count[i]), int(reg.size)))
     return parts, flat.reshape(run.dom.shape)
+
+
+def working_step(shape) -> int:
+    """The subsampling step that brings an (H, W) image nearest to `WORKING_PIXELS` (>= 1)."""
+    return max(1, int(round(np.sqrt(shape[0] * shape[1] / WORKING_PIXELS))))
+
+
+def _label_full(image: RangeImage, step: int, run: _Runner, models: _Models, coarse: np.ndarray):
+    """Label every pixel of the full-size `image` with the final models fitted on its `step`-subsampled
+    copy (whose labels are `coarse` (h, w)).
+
+    A full-size pixel may take the label of any coarse pixel in the 3 x 3 block around it (its own
+    coarse pixel and the 8 adjacent): it goes to the one whose model is nearest (eq. 10; a face turned
+    away from the camera pays tau, as in `_finish`), if that model explains it (within tau), else 0.
+    Returns the parts (regions = full-size pixels each model explains) and the (H, W) label image.
+    """
+    H, W = image.shape
+    h, w = coarse.shape
+    flat = np.flatnonzero(image.valid)
+    P = image.points.reshape(-1, 3)[flat]
+    dom = _Domain(P, np.zeros((P.shape[0], 0), np.int64), [], flat, (H, W), views=viewing_rays(image, P))
+    dom.noise_model = run.dom.noise_model     # the same noise model as the working image's
+    frun = _Runner(dom, run.opts, run.noise, run.tau, run.dtype, centre=run.centre)
+    r, c = np.divmod(flat, W)
+    r, c = np.clip(np.rint(r / step).astype(np.int64), 0, h - 1), np.clip(np.rint(c / step).astype(np.int64), 0, w - 1)
+    padded = np.pad(coarse, 1)
+    cand = np.stack([padded[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], 1)   # (Pf, 9)
+    cand = np.unique(np.arange(P.shape[0], dtype=np.int64)[:, None] * (len(models.theta) + 1) + cand)
+    point, label = np.divmod(cand, len(models.theta) + 1)
+    point, model = point[label > 0], label[label > 0] - 1
+    d, _, away = frun.distances(models.theta, model, point)
+    inl = d < run.tau
+    score = np.where(inl, d + np.where(away, run.tau, 0.0), np.inf)
+    best = np.full(P.shape[0], np.inf)
+    np.minimum.at(best, point, score)
+    win = inl & (score == best[point])
+    owner = np.zeros(P.shape[0], np.int32)
+    owner[point[win]] = model[win] + 1                  # ties: the later model (any one of them)
+    labels = np.zeros(H * W, np.int32)
+    labels[flat] = owner
+    count = np.bincount(owner, minlength=len(models.theta) + 1)[1:]
+    owns = np.flatnonzero(count > 0)
+    relabel = np.zeros(len(models.theta) + 1, np.int32)
+    relabel[owns + 1] = np.arange(1, owns.size + 1)
+    labels = relabel[labels]
+    sqs = _to_world(models.theta, run.centre)
+    parts = []
+    for i in owns:
+        sel = inl & (model == i)
+        parts.append(Part(sqs[i], flat[point[sel]], float(np.sum(d[sel].astype(np.float64) ** 2)), int(count[i]),
+                          int(sel.sum())))
+    return parts, labels.reshape(H, W)
 
 
 def _to_world(theta, centre) -> list:
@@ -312,4 +487,5 @@ def _on_jax_event(event, duration, **_):
 
 
 _COMPILE_SECONDS = [0.0]
+WORKING_PIXELS = 160 * 120
 jax.monitoring.register_event_duration_secs_listener(_on_jax_event)

@@ -135,6 +135,9 @@ def _chunks(M, size=4096):
         yield np.asarray(block)
 
 
+SELECTORS = ("greedy", "local", "exact")
+
+
 def select(Q: np.ndarray, method: str = "greedy") -> tuple[np.ndarray, dict]:
     """Select models: `method` in {"greedy" (the paper), "local" (greedy + local search), "exact"}.
 
@@ -150,6 +153,6 @@ def select(Q: np.ndarray, method: str = "greedy") -> tuple[np.ndarray, dict]:
     elif method == "exact":
         m = select_exact(Q) if Q.shape[0] <= 16 else improve_local(Q, greedy)
     else:
-        raise ValueError(f"select: method must be 'greedy', 'local' or 'exact', got {method!r}")
+        raise ValueError(f"select: method must be one of {SELECTORS}, got {method!r}")
     f = objective(Q, m)
     return m, {"objective": f, "greedy_objective": fg, "greedy_gap": f - fg}
