@@ -357,7 +357,12 @@ def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no
     code, _, err = run(capsys, "segment", scene, "-o", "noise=-1")
     assert_one_line_error(code, err)
     assert code == 2 and "noise" in err
-    monkeypatch.setattr(sqjax.segment, "SegmentOptions", lambda **kw: (_ for _ in ()).throw(TypeError("bad field")))
+    @dataclasses.dataclass(frozen=True)
+    class Typed(sqjax.segment.SegmentOptions):
+        def __post_init__(self):
+            raise TypeError("SegmentOptions: window must be an int")
+
+    monkeypatch.setattr(sqjax.segment, "SegmentOptions", Typed)
     code, _, err = run(capsys, "segment", scene, "-o", "window=4")
     assert_one_line_error(code, err)
     assert code == 2 and "internal" not in err
