@@ -86,3 +86,12 @@ def test_cli_fills_the_cache_unless_told_not_to(tmp_path):
     r = _python(code.replace("EXTRA", "[]"), {"SQJAX_CACHE_DIR": str(on), "SQJAX_NO_CACHE": ""}, timeout=300)
     assert r.returncode == 0, r.stderr
     assert any(on.iterdir()), "no compiled kernel was cached"
+
+
+def test_figure_and_progress_dependencies_are_core():
+    """`pip install . && sqjax demo` must draw figure.png: matplotlib (and tqdm) are not extras."""
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = {d.split(">")[0].split("=")[0].split(";")[0].strip() for d in deps}
+    assert {"matplotlib", "tqdm"} <= names
