@@ -377,7 +377,10 @@ def _segment_and_write(data, kind, out, *, input_path, input_shape, settings, op
     progress = _Progress(options.max_steps, rounds=1 + max(int(options.reseed), 0))
     progress.start(Path(input_path).name if input_path else "segment")
     try:
-        seg = segment(data, options=options, progress=progress)
+        try:
+            seg = segment(data, options=options, progress=progress)
+        except ValueError as e:   # e.g. too few valid points: say which input
+            raise CLIError(f"{input_path}: {_one_line(e)}" if input_path else _one_line(e)) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
         written = write_segmentation(seg, data, out, input_path=input_path, input_shape=input_shape,
                                      settings=settings, figure=figure)
@@ -618,7 +621,10 @@ def cmd_fit(args) -> int:
     pts = read_points(path)
     if args.depth_scale is not None:
         pts = pts / args.depth_scale
-    result = fit(pts, max_steps=args.max_steps, deform=args.deform)
+    try:
+        result = fit(pts, max_steps=args.max_steps, deform=args.deform)
+    except ValueError as e:   # e.g. too few valid points: say which input
+        raise CLIError(f"{path}: {_one_line(e)}") from None
     doc = fit_dict(result, input_path=path)
     deg = np.degrees(doc["euler_zyz"])
     status = "converged" if doc["converged"] else "NOT converged (raise --max-steps?)"
@@ -733,6 +739,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _one_line(e: BaseException) -> str:
     msg = str(e) or type(e).__name__
+    if isinstance(e, OSError) and e.strerror and e.errno is not None:
+        msg = e.strerror    # without the "[Errno N]" prefix; our own messages carry the path in strerror
     if isinstance(e, OSError) and e.filename and str(e.filename) not in msg:
         msg = f"{e.filename}: {msg}"
     return " ".join(msg.split())

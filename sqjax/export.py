@@ -359,6 +359,12 @@ def check_writable_file(path) -> Path:
     return path
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_paths(*paths):
     """Yield one temporary path per target (same folder, same extension, created exclusively); on
@@ -376,6 +382,7 @@ def atomic_paths(*paths):
                 raise _write_error(t, e) from None
             os.close(fd)
             tmps.append(Path(tmp))
+            os.chmod(tmp, 0o666 & ~_umask())   # mkstemp makes 0600; outputs get the usual permissions
         try:
             yield tuple(tmps)
         except OSError as e:

@@ -461,3 +461,12 @@ def test_segment_rgbd_frame(capsys, scene, tmp_path):
     doc = json.loads((out / "models.json").read_text())
     assert doc["settings"]["camera_source"] == "--intrinsics" and doc["camera"]["fx"] == pytest.approx(c.fx)
     assert len(doc["parts"]) == 3 and (out / "figure.png").exists() and (out / "labels_id.png").exists()
+
+
+def test_errors_name_the_input(capsys, tmp_path):
+    few = _few_points(tmp_path)
+    for cmd in ("segment", "fit"):
+        code, _, err = run(capsys, cmd, few, *(["--out", tmp_path / "o"] if cmd == "segment" else []))
+        assert_one_line_error(code, err)
+        assert str(few) in err and "[Errno" not in err
+    assert not (tmp_path / "o").exists()    # the folder made for the results is removed again

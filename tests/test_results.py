@@ -174,3 +174,13 @@ def test_atomic_paths_remove_temporaries_on_failure(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("stop")
     assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
+
+
+def test_atomic_files_get_the_usual_permissions(tmp_path):
+    mask = os.umask(0o022)
+    try:
+        with atomic_paths(tmp_path / "a.json") as (tmp,):
+            tmp.write_text("{}")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o644
