@@ -291,7 +291,7 @@ class _Progress:
         self.enabled = enabled if enabled is not None else bool(getattr(self.stream, "isatty", lambda: False)())
         self.budget, self.rounds = max(int(max_steps), 1), max(int(rounds), 1)
         self.round, self.round_start, self.step, self.in_final = 0, 0, 0, False
-        self.bar = None
+        self.n_models, self.bar = 1 << 62, None
 
     @property
     def total(self) -> int:
@@ -320,16 +320,21 @@ class _Progress:
     def _sync(self, total=None):
         if self.bar is not None:
             self.bar.total = int(total) if total is not None else self.total
-            self.bar.n = min(self.step + self.round, self.bar.total)  # a final stage per finished round
-            self.bar.refresh()
+            done = min(self.step + self.round, self.bar.total)  # a final stage per finished round
+            if done > self.bar.n:
+                self.bar.update(done - self.bar.n)   # update(): tqdm's smoothed rate, so the ETA forgets compiling
+            else:
+                self.bar.refresh()
 
     def __call__(self, step: int, n_active: int, n_models: int, *, stage: str | None = None,
                  round: int | None = None, total: int | None = None):  # noqa: A002
         if round is not None and round != self.round:
             self.round, self.round_start, self.in_final = int(round), self.step, False
-        elif stage in (None, "grow") and self.in_final and step > self.step:  # growth again: a reseed round
+        elif stage in (None, "grow") and step > self.step and (self.in_final or n_models > self.n_models):
+            # growth again after a final stage, or more models than selection left (reseeded ones
+            # joined): a reseed round
             self.round, self.round_start, self.in_final = min(self.round + 1, self.rounds - 1), self.step, False
-        self.step = int(step)
+        self.step, self.n_models = int(step), int(n_models)
         stage = stage or ("grow" if n_active and self.step - self.round_start < self.budget else "merge")
         if stage != "grow":
             self.in_final = True

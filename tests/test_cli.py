@@ -319,6 +319,16 @@ def test_progress_total_shrinks_to_the_truth():
     bar.close()
 
 
+def test_progress_sees_a_reseed_round_by_its_new_models():
+    bar = _Progress(10, _Terminal(), rounds=2)
+    bar.start("x")
+    bar(1, 4, 9)
+    bar(2, 3, 5)        # selection dropped models, and then stopped them all without a call with 0 active
+    bar(3, 2, 8)        # reseeded models joined: round 2
+    assert bar.round == 1 and bar.round_start == 2 and bar.total == 2 + 10 + 2
+    bar.close()
+
+
 # ----------------------------------------------------------------------------------------------------
 # output safety and early checks (issue 15 item 9): fail before any work, name the file
 
