@@ -4,6 +4,8 @@ The names below are imported on first use (module-level `__getattr__`, PEP 562),
 and the command line's `--help` do not import JAX; `from sqjax import X` and `sqjax.X` work as usual.
 """
 
+import sys
+import types
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
@@ -49,3 +51,17 @@ def __getattr__(name: str):
 
 def __dir__():
     return sorted({*globals(), *__all__})
+
+
+class _Package(types.ModuleType):
+    """Keeps `sqjax.segment` the function: importing the submodule `sqjax.segment` (which any
+    `from sqjax.segment import ...` does) would otherwise bind the module over it, as the eager
+    `from .segment import segment` used to undo."""
+
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and name in _NAMES and value.__name__ == f"{__name__}.{name}":
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -6,6 +6,7 @@ Commands run in-process through `sqjax.cli.main` (the JIT cache is shared betwee
 
 from __future__ import annotations
 
+import importlib
 import io
 import json
 import os
@@ -336,12 +337,10 @@ def test_progress_sees_a_reseed_round_by_its_new_models():
 @pytest.fixture
 def no_segment(monkeypatch):
     """segment() must not run: the checks come first."""
-    import sqjax.segment
-
     def refuse(*a, **k):
         raise AssertionError("segment() ran before the check")
 
-    monkeypatch.setattr(sqjax.segment, "segment", refuse)
+    monkeypatch.setattr(importlib.import_module("sqjax.segment"), "segment", refuse)
 
 
 def test_unusable_out_fails_before_segmenting(capsys, scene, tmp_path, no_segment):
@@ -355,24 +354,24 @@ def test_unusable_out_fails_before_segmenting(capsys, scene, tmp_path, no_segmen
 def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no_segment):
     import dataclasses
 
-    import sqjax.segment
+    segment_module = importlib.import_module("sqjax.segment")
 
     @dataclasses.dataclass(frozen=True)
-    class Checked(sqjax.segment.SegmentOptions):
+    class Checked(segment_module.SegmentOptions):
         def __post_init__(self):
             if self.noise is not None and self.noise < 0:
                 raise ValueError(f"SegmentOptions: noise must be >= 0, got {self.noise}")
 
-    monkeypatch.setattr(sqjax.segment, "SegmentOptions", Checked)
+    monkeypatch.setattr(segment_module, "SegmentOptions", Checked)
     code, _, err = run(capsys, "segment", scene, "-o", "noise=-1")
     assert_one_line_error(code, err)
     assert code == 2 and "noise" in err
     @dataclasses.dataclass(frozen=True)
-    class Typed(sqjax.segment.SegmentOptions):
+    class Typed(segment_module.SegmentOptions):
         def __post_init__(self):
             raise TypeError("SegmentOptions: window must be an int")
 
-    monkeypatch.setattr(sqjax.segment, "SegmentOptions", Typed)
+    monkeypatch.setattr(segment_module, "SegmentOptions", Typed)
     code, _, err = run(capsys, "segment", scene, "-o", "window=4")
     assert_one_line_error(code, err)
     assert code == 2 and "internal" not in err
@@ -426,9 +425,7 @@ def test_old_depth_scale_convention_gets_a_hint(capsys, tmp_path):
 
 
 def test_fit_json_unwritable_fails_before_fitting(capsys, tmp_path, monkeypatch):
-    import sqjax.fitting
-
-    monkeypatch.setattr(sqjax.fitting, "fit", lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")))
+    monkeypatch.setattr(importlib.import_module("sqjax.fitting"), "fit", lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")))
     pts = tmp_path / "p.xyz"
     write_points(pts, np.random.default_rng(0).normal(size=(50, 3)))
     code, _, err = run(capsys, "fit", pts, "--json", "/proc/sqjax-test.json")

@@ -95,3 +95,11 @@ def test_figure_and_progress_dependencies_are_core():
     deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     names = {d.split(">")[0].split("=")[0].split(";")[0].strip() for d in deps}
     assert {"matplotlib", "tqdm"} <= names
+
+
+def test_importing_the_segment_module_keeps_the_segment_function():
+    import importlib
+
+    module = importlib.import_module("sqjax.segment")   # as `from sqjax.segment import ...` does
+    assert sqjax.segment is module.segment and callable(sqjax.segment)
+    assert sqjax.evaluate is importlib.import_module("sqjax.evaluate")   # public modules stay modules
