@@ -121,3 +121,10 @@ def test_latin1_obj_reads(tmp_path):
     (tmp_path / "m.obj").write_bytes(text.encode("latin-1"))
     pts = read_points(tmp_path / "m.obj")
     assert pts.shape == (4, 3)
+
+
+def test_real_mosd_pcd_keeps_its_rgba():
+    folder = data_path("mosd", "test")
+    image = read_range_image(sorted(folder.glob("*.pcd"))[0])
+    assert image.colors is not None and image.colors.shape == image.shape + (3,)
+    assert 50 < image.colors.mean() < 230 and image.colors.std() > 10    # a real photo, not zeros
