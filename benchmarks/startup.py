@@ -13,6 +13,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -22,12 +23,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run(argv, env) -> float:
+def _run(argv, env, report=None) -> float:
     t = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "sqjax", *argv], capture_output=True, text=True, env=env, cwd=ROOT)
     wall = time.perf_counter() - t
     if r.returncode != 0:
         raise SystemExit(f"sqjax {' '.join(argv)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
+    m = re.search(r"in ([0-9.]+) s \(compile ([0-9.]+) s\)", r.stdout)
+    if report is not None and m:   # segment()'s own figures: its run time and the JAX compile events in it
+        report.update(segment_s=float(m.group(1)), compile_events_s=float(m.group(2)))
     return wall
 
 
@@ -42,15 +46,21 @@ def main(argv=None) -> int:
                "SQJAX_CACHE_DIR": str(Path(tmp) / "cache"), "SQJAX_NO_CACHE": ""}
         helps = sorted(_run(["--help"], env) for _ in range(args.repeat))
         demo = ["demo", "--out", str(Path(tmp) / "demo"), "--shape", args.shape]
-        cold = _run(demo, env)
-        warm = _run(demo, env)
+        cold_info, warm_info = {}, {}
+        cold = _run(demo, env, cold_info)
+        warm = _run(demo, env, warm_info)
         cache_files = sum(1 for _ in (Path(tmp) / "cache").rglob("*") if _.is_file())
-    rows = [("sqjax --help (median of %d)" % args.repeat, helps[len(helps) // 2]),
-            ("sqjax demo, first run (empty cache)", cold), ("sqjax demo, second run (warm cache)", warm)]
-    print(f"{'command':<40} {'wall s':>8}")
-    for name, v in rows:
-        print(f"{name:<40} {v:8.2f}")
+    rows = [("sqjax --help (median of %d)" % args.repeat, helps[len(helps) // 2], {}),
+            ("sqjax demo, first run (empty cache)", cold, cold_info),
+            ("sqjax demo, second run (warm cache)", warm, warm_info)]
+    print(f"{'command':<40} {'wall s':>8} {'segment s':>10} {'compile s':>10}")
+    for name, v, info in rows:
+        extra = f" {info['segment_s']:10.1f} {info['compile_events_s']:10.1f}" if info else ""
+        print(f"{name:<40} {v:8.2f}{extra}")
+    print("(compile s: JAX's compile events inside segment(): tracing, lowering, XLA or cache retrieval)")
+    print(f"load average at the end: {', '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} CPUs")
     doc = {"help_s": helps, "demo_cold_s": cold, "demo_warm_s": warm, "demo_shape": args.shape,
+           "demo_cold": cold_info, "demo_warm": warm_info, "loadavg": os.getloadavg(),
            "cache_files": cache_files, "python": platform.python_version(),
            "machine": platform.machine(), "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d %H:%M:%S")}
     out = Path(args.out)
