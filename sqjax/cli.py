@@ -184,6 +184,10 @@ def _segment_options(pairs, noise):
                 kw[key] = text
         except ValueError:
             raise CLIError(f"bad value for segment option {key}: {text!r}") from None
+        v = kw[key]
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (np.isfinite(v) and v >= 0):
+            # no SegmentOptions number is negative or infinite (SegmentOptions checks the exact ranges)
+            raise CLIError(f"bad value for segment option {key}: {text!r} (must be a finite number >= 0)")
     if noise is not None:
         kw["noise"] = noise
     try:

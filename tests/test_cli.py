@@ -377,18 +377,11 @@ def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no
     assert code == 2 and "internal" not in err
 
 
-def test_negative_noise_option_with_real_options(capsys, scene, no_segment):
-    from sqjax.segment import SegmentOptions
-
-    try:
-        SegmentOptions(noise=-1.0)
-    except (TypeError, ValueError):
-        pass
-    else:
-        pytest.skip("SegmentOptions does not validate noise yet (the lead adds it in segment.py)")
-    code, _, err = run(capsys, "segment", scene, "-o", "noise=-1")
+@pytest.mark.parametrize("option", ["noise=-1", "threshold=inf", "window=-4", "keep_fraction=nan"])
+def test_negative_or_infinite_option_values(capsys, scene, no_segment, option):
+    code, _, err = run(capsys, "segment", scene, "-o", option)
     assert_one_line_error(code, err)
-    assert code == 2 and "noise" in err
+    assert code == 2 and option.split("=")[0] in err
 
 
 def test_render_json_unwritable_leaves_no_npz(capsys, tmp_path):
