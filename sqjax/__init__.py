@@ -1,49 +1,67 @@
-"""sqjax: direct part-level segmentation of range images with superquadrics, in JAX."""
+"""sqjax: direct part-level segmentation of range images with superquadrics, in JAX.
 
+The names below are imported on first use (module-level `__getattr__`, PEP 562), so `import sqjax`
+and the command line's `--help` do not import JAX; `from sqjax import X` and `sqjax.X` work as usual.
+"""
+
+import sys
+import types
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
-from . import evaluate as evaluate
-from . import plot as plot
-from . import rotation as rotation
-from . import scenes as scenes
-from .evaluate import HooverScore as HooverScore
-from .evaluate import explained_fraction as explained_fraction
-from .evaluate import hoover as hoover
-from .evaluate import parameter_errors as parameter_errors
-from .evaluate import volume_iou as volume_iou
-from .evaluate import volume_iou_batch as volume_iou_batch
-from .export import label_colors as label_colors
-from .export import labels_to_png as labels_to_png
-from .export import parts_to_scene as parts_to_scene
-from .export import write_segmentation as write_segmentation
-from .fitting import Fit as Fit
-from .fitting import FitOptions as FitOptions
-from .fitting import fit as fit
-from .formats import read_points as read_points
-from .formats import read_range_image as read_range_image
-from .formats import write_points as write_points
-from .formats import write_range_image as write_range_image
-from .rangeimage import OrthographicCamera as OrthographicCamera
-from .rangeimage import PinholeCamera as PinholeCamera
-from .rangeimage import RangeImage as RangeImage
-from .plot import figure_sequence as figure_sequence
-from .scenes import paper_scene as paper_scene
-from .scenes import random_scene as random_scene
-from .scenes import render as render
-from .segment import Segmentation as Segmentation
-from .segment import SegmentOptions as SegmentOptions
-from .segment import segment as segment
-from .selection import SelectionWeights as SelectionWeights
-from .superquadric import Superquadric as Superquadric
-from .superquadric import contains as contains
-from .superquadric import distance as distance
-from .superquadric import inside_outside as inside_outside
-from .superquadric import radial_distance as radial_distance
-from .superquadric import residual as residual
-from .superquadric import sample_surface as sample_surface
-from .superquadric import to_trimesh as to_trimesh
+# public name -> the module that defines it
+_NAMES = {
+    "HooverScore": "evaluate", "explained_fraction": "evaluate", "hoover": "evaluate",
+    "parameter_errors": "evaluate", "volume_iou": "evaluate", "volume_iou_batch": "evaluate",
+    "label_colors": "export", "labels_to_png": "export", "parts_to_scene": "export",
+    "write_segmentation": "export", "read_segmentation": "export", "superquadric_from_dict": "export",
+    "enable_compilation_cache": "cache",
+    "Fit": "fitting", "FitOptions": "fitting", "fit": "fitting",
+    "read_points": "formats", "read_range_image": "formats", "read_rgbd": "formats",
+    "write_points": "formats", "write_range_image": "formats",
+    "OrthographicCamera": "rangeimage", "PinholeCamera": "rangeimage", "RangeImage": "rangeimage",
+    "figure_sequence": "plot",
+    "paper_scene": "scenes", "random_scene": "scenes", "render": "scenes",
+    "Segmentation": "segment", "SegmentOptions": "segment", "segment": "segment",
+    "SelectionWeights": "selection",
+    "Superquadric": "superquadric", "contains": "superquadric", "distance": "superquadric",
+    "inside_outside": "superquadric", "radial_distance": "superquadric", "residual": "superquadric",
+    "sample_surface": "superquadric", "to_trimesh": "superquadric",
+}
+_MODULES = ("evaluate", "plot", "rotation", "scenes")
+
+__all__ = sorted([*_NAMES, *_MODULES])
 
 try:
     __version__ = version("sqjax")
 except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
+
+
+def __getattr__(name: str):
+    if name in _NAMES:
+        value = getattr(import_module(f".{_NAMES[name]}", __name__), name)
+    elif name in _MODULES:
+        value = import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module 'sqjax' has no attribute {name!r}")
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted({*globals(), *__all__})
+
+
+class _Package(types.ModuleType):
+    """Keeps `sqjax.segment` the function: importing the submodule `sqjax.segment` (which any
+    `from sqjax.segment import ...` does) would otherwise bind the module over it, as the eager
+    `from .segment import segment` used to undo."""
+
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and name in _NAMES and value.__name__ == f"{__name__}.{name}":
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

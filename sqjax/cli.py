@@ -3,8 +3,9 @@
 Commands (each has `--help`)::
 
     sqjax demo     [--out DIR]                          a generated scene (Fig. 3 of the paper), no download
-    sqjax segment  INPUT [--camera fx,fy,cx,cy | --ortho PIXEL[,cx,cy]] [--depth-scale S]
-                   [--subsample STEP] [--noise SIGMA] [-o KEY=VALUE ...] [--out DIR]
+    sqjax segment  INPUT [--camera fx,fy,cx,cy | --ortho PIXEL[,cx,cy] | --intrinsics FILE.json]
+                   [--color IMAGE] [--depth-scale S] [--subsample STEP] [--noise SIGMA]
+                   [-o KEY=VALUE ...] [--out DIR]
     sqjax render   SCENE --out FILE                     SCENE: a paper scene name or random:SEED
     sqjax evaluate RESULT TRUTH [--tolerance 0.8] [--json OUT]
     sqjax fit      POINTS [--json OUT]
@@ -12,8 +13,16 @@ Commands (each has `--help`)::
 `segment` reads range images (`.npz`, `.npy`, 16-bit `.png`, organised `.pcd`) and point clouds
 (`.ply`, `.xyz`, `.txt`, unorganised `.pcd`, `(N, 3)` `.npy`, mesh vertices of `.obj` / `.stl`) and
 writes into DIR: `models.json` (schema: `sqjax.export`), `labels.npy` (raw int32 labels, 0 = none,
-i + 1 = part i), `labels.png` (colour labels; clouds: `labels.ply`, coloured points), `parts.glb` and
-`parts.ply` (part meshes coloured as the labels) and `figure.png` (the paper's panel sequence).
+i + 1 = part i), `labels.png` (colour labels) and `labels_id.png` (16-bit label ids; clouds:
+`labels.ply`, coloured points), `parts.glb` (glTF, Y-up) and `parts.ply` (camera frame) part meshes
+coloured as the labels, and `figure.png` (the paper's panel sequence). RGB-D frames: a 16-bit depth
+PNG with `--intrinsics cam.json --depth-scale 1000 [--color rgb.png]`. `--depth-scale` is stored units
+per metre and divides (Open3D's convention; values below 1, the old multiplying form, are refused).
+
+Outputs are checked writable before any work, written into a temporary folder and renamed into place
+(a failed run leaves no partial file; symlinks in DIR are replaced, never followed). The compiled
+kernels are cached on disk (`$XDG_CACHE_HOME/sqjax/jax`, `~/.cache/sqjax/jax` or `$SQJAX_CACHE_DIR`);
+`--no-cache` or `SQJAX_NO_CACHE=1` turn that off.
 
 `fit` writes (`--json`) one JSON object, schema version 1::
 
@@ -35,11 +44,10 @@ Bad input (missing or damaged file, unsupported format, bad option) prints one l
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
-import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +116,26 @@ def _positive(kind):
     return parse
 
 
+def _noise_arg(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (np.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"noise must be a finite number >= 0, got {text!r}")
+    return v
+
+
+def _depth_scale_arg(text: str) -> float:
+    from .formats import check_depth_scale
+
+    try:
+        return check_depth_scale(float(text), "--depth-scale")
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e) if "convention" in str(e) else
+                                         f"expected a positive number (depth units per metre), got {text!r}") from None
+
+
 def _shape_arg(text: str) -> tuple[int, int]:
     try:
         h, w = (int(v) for v in text.lower().replace("x", ",").split(","))
@@ -156,9 +184,17 @@ def _segment_options(pairs, noise):
                 kw[key] = text
         except ValueError:
             raise CLIError(f"bad value for segment option {key}: {text!r}") from None
+        v = kw[key]
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (np.isfinite(v) and v >= 0):
+            # no SegmentOptions number is negative or infinite (SegmentOptions checks the exact ranges)
+            raise CLIError(f"bad value for segment option {key}: {text!r} (must be a finite number >= 0)")
     if noise is not None:
         kw["noise"] = noise
-    return SegmentOptions(**kw)
+    try:
+        return SegmentOptions(**kw)
+    except (TypeError, ValueError) as e:  # the options' own checks name the field
+        given = ", ".join(f"{k}={v!r}" for k, v in kw.items()) or "defaults"
+        raise CLIError(f"bad segment options ({given}): {_one_line(e)}") from None
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -189,15 +225,21 @@ def _npy_is_points(path: Path) -> bool:
     return a.ndim == 2 and a.shape[1] == 3
 
 
-def load_input(path, *, camera=None, ortho=None, depth_scale=None):
+def load_input(path, *, camera=None, ortho=None, depth_scale=None, color=None, intrinsics=None):
     """Read INPUT as the `segment` command does: `(RangeImage, "range_image")` or `((P, 3), "point_cloud")`.
 
     `camera`: a `PinholeCamera` (overrides a stored one); `ortho`: [pixel_size] or [pixel_size, cx, cy]
-    (an `OrthographicCamera`, centred on the image when cx, cy are not given).
+    (an `OrthographicCamera`, centred on the image when cx, cy are not given); `intrinsics`: a JSON file
+    of pinhole intrinsics (`formats.read_intrinsics`); `color`: a colour image registered to the depth.
+    `depth_scale`: stored units per metre (Open3D), stored values are divided by it.
     """
-    from .formats import read_points, read_range_image
+    from .formats import read_intrinsics, read_points, read_range_image, with_colors
     from .rangeimage import OrthographicCamera, RangeImage
 
+    if intrinsics is not None:
+        if camera is not None or ortho is not None:
+            raise CLIError("--intrinsics, --camera and --ortho are exclusive: give one camera")
+        camera = read_intrinsics(intrinsics)
     path = Path(path)
     ext = path.suffix.lower()
     known = _IMAGE_EXTS + _CLOUD_EXTS + (".npy", ".pcd")
@@ -212,10 +254,13 @@ def load_input(path, *, camera=None, ortho=None, depth_scale=None):
             (ext == ".npy" and not has_camera and _npy_is_points(path)):
         if has_camera:
             raise CLIError(f"{path}: --camera / --ortho apply to range images, and this is a point cloud")
+        if color is not None:
+            raise CLIError(f"{path}: --color applies to range images, and this is a point cloud")
         pts = read_points(path)
-        return (pts * depth_scale if depth_scale is not None else pts), "point_cloud"
+        return (pts / depth_scale if depth_scale is not None else pts), "point_cloud"
     if ext in (".npy", ".png") and not has_camera:
-        raise CLIError(f"{path}: a {ext} depth image stores no camera; pass --camera fx,fy,cx,cy or --ortho PIXEL")
+        raise CLIError(f"{path}: a {ext} depth image stores no camera; pass --intrinsics FILE.json, "
+                       "--camera fx,fy,cx,cy or --ortho PIXEL")
     cam = camera
     if ortho is not None:
         cam = OrthographicCamera(ortho[0], *(ortho[1:] if len(ortho) == 3 else (0.0, 0.0)))
@@ -223,7 +268,9 @@ def load_input(path, *, camera=None, ortho=None, depth_scale=None):
     if ortho is not None and len(ortho) == 1:
         H, W = image.shape
         image = RangeImage(image.depth, OrthographicCamera(ortho[0], (W - 1) / 2, (H - 1) / 2), image.labels,
-                           image.points_override)
+                           image.points_override, image.colors)
+    if color is not None:
+        image = with_colors(image, color)
     return image, "range_image"
 
 
@@ -232,36 +279,83 @@ def load_input(path, *, camera=None, ortho=None, depth_scale=None):
 
 
 class _Progress:
-    """A one-line progress bar on stderr (only when it is a terminal)."""
+    """A progress bar on stderr (only when it is a terminal), with a total and an ETA (tqdm).
 
-    def __init__(self, total: int, stream=None, enabled: bool | None = None):
+    Units are growth steps plus one unit per final stage (rejoining split parts and the final selection)
+    of each round: `max_steps` growth steps and that stage per round, `1 + reseed` rounds. The total is an
+    upper bound that shrinks to the truth as rounds end early, so the ETA errs long.
+
+    `segment()` calls `progress(step, n_active, n_models)` after each growth step; this class also takes
+    the keywords `stage` ("grow", "merge", "select", "reseed", "finish"), `round` (0-based) and `total`
+    (the true number of units) should `segment()` pass them, and then uses them as given.
+    """
+
+    def __init__(self, max_steps: int, stream=None, enabled: bool | None = None, *, rounds: int = 1):
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled if enabled is not None else bool(getattr(self.stream, "isatty", lambda: False)())
-        self.total, self.t0, self.shown = max(int(total), 1), time.perf_counter(), False
+        self.budget, self.rounds = max(int(max_steps), 1), max(int(rounds), 1)
+        self.round, self.round_start, self.step, self.in_final = 0, 0, 0, False
+        self.n_models, self.bar = 1 << 62, None
 
-    def _write(self, text: str):
-        if self.enabled:
-            self.stream.write("\r\x1b[2K" + text)
-            self.stream.flush()
-            self.shown = True
+    @property
+    def total(self) -> int:
+        """Units still possible: steps done + the rest of this round's budget + later rounds + final stages."""
+        done_rounds_steps = self.round_start
+        this_round = self.step - self.round_start if self.in_final else self.budget
+        return done_rounds_steps + this_round + (self.rounds - self.round - 1) * self.budget + self.rounds
+
+    def _open(self, what: str):
+        if self.bar is None and self.enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc=f"sqjax: {what}", file=self.stream, unit="step",
+                            dynamic_ncols=True, leave=False,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
+                                       "[{elapsed}<{remaining}] {postfix}")
 
     def start(self, what: str):
-        self._write(f"sqjax: {what}: seeding (the first run compiles the kernels) ...")
+        self._open(what)
+        self._post("seeding (the first run compiles the kernels)")
 
-    def __call__(self, step: int, n_active: int, n_models: int):
-        width = 24
-        fill = int(round(width * min(step / self.total, 1.0)))
-        tail = f"{n_active} of {n_models} models growing" if n_active else "merging split parts, final selection"
-        self._write(f"sqjax: [{'#' * fill}{'.' * (width - fill)}] growth step {step}/{self.total}, {tail}, "
-                    f"{time.perf_counter() - self.t0:5.1f} s")
+    def _post(self, text: str):
+        if self.bar is not None:
+            self.bar.set_postfix_str(text, refresh=True)
+
+    def _sync(self, total=None):
+        if self.bar is not None:
+            self.bar.total = int(total) if total is not None else self.total
+            done = min(self.step + self.round, self.bar.total)  # a final stage per finished round
+            if done > self.bar.n:
+                self.bar.update(done - self.bar.n)   # update(): tqdm's smoothed rate, so the ETA forgets compiling
+            else:
+                self.bar.refresh()
+
+    def __call__(self, step: int, n_active: int, n_models: int, *, stage: str | None = None,
+                 round: int | None = None, total: int | None = None):  # noqa: A002
+        if round is not None and round != self.round:
+            self.round, self.round_start, self.in_final = int(round), self.step, False
+        elif stage in (None, "grow") and step > self.step and (self.in_final or n_models > self.n_models):
+            # growth again after a final stage, or more models than selection left (reseeded ones
+            # joined): a reseed round
+            self.round, self.round_start, self.in_final = min(self.round + 1, self.rounds - 1), self.step, False
+        self.step, self.n_models = int(step), int(n_models)
+        stage = stage or ("grow" if n_active and self.step - self.round_start < self.budget else "merge")
+        if stage != "grow":
+            self.in_final = True
+        self._sync(total)
+        where = f"round {self.round + 1}/{self.rounds}, " if self.rounds > 1 else ""
+        tail = f"{n_active} of {n_models} models growing" if stage == "grow" else \
+            "merging split parts, final selection" if stage in ("merge", "select") else stage
+        self._post(f"{where}growth step {self.step - self.round_start}/{self.budget}, {tail}")
 
     def phase(self, what: str):
-        self._write(f"sqjax: {what} ...")
+        self._post(what)
 
     def close(self):
-        if self.shown:
-            self.stream.write("\r\x1b[2K")
-            self.stream.flush()
+        if self.bar is not None:
+            self.bar.n = self.bar.total
+            self.bar.close()
+            self.bar = None
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -289,10 +383,13 @@ def _segment_and_write(data, kind, out, *, input_path, input_shape, settings, op
     from .export import write_segmentation
     from .segment import segment
 
-    progress = _Progress(options.max_steps)
+    progress = _Progress(options.max_steps, rounds=1 + max(int(options.reseed), 0))
     progress.start(Path(input_path).name if input_path else "segment")
     try:
-        seg = segment(data, options=options, progress=progress)
+        try:
+            seg = segment(data, options=options, progress=progress)
+        except ValueError as e:   # e.g. too few valid points: say which input
+            raise CLIError(f"{input_path}: {_one_line(e)}" if input_path else _one_line(e)) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
         written = write_segmentation(seg, data, out, input_path=input_path, input_shape=input_shape,
                                      settings=settings, figure=figure)
@@ -310,18 +407,40 @@ def _segment_and_write(data, kind, out, *, input_path, input_shape, settings, op
     return seg, written
 
 
+def _check_out_dir(out: Path) -> bool:
+    """Fail now, not after the segmentation, when `out` cannot take the results; True if it was created."""
+    from .export import check_writable_dir
+
+    existed = os.path.lexists(out)
+    check_writable_dir(out)
+    return not existed
+
+
 def cmd_segment(args) -> int:
     path = Path(args.input)
-    data, kind = load_input(path, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale)
+    options = _segment_options(args.option, args.noise)          # bad options: before any work
+    out = Path(args.out) if args.out else Path(f"sqjax-{path.stem}")
+    created = _check_out_dir(out)                                  # unusable --out: before any work
+    try:
+        return _segment_file(args, path, options, out)
+    except BaseException:
+        if created:   # leave no empty folder behind a failed run
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+
+
+def _segment_file(args, path, options, out) -> int:
+    data, kind = load_input(path, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale,
+                            color=args.color, intrinsics=args.intrinsics)
     input_shape = data.shape if kind == "range_image" else (len(data),)
     if args.subsample > 1:
         data = data.subsample(args.subsample) if kind == "range_image" else data[:: args.subsample]
-    options = _segment_options(args.option, args.noise)
-    out = Path(args.out) if args.out else Path(f"sqjax-{path.stem}")
-    camera_source = "--camera" if args.camera is not None else "--ortho" if args.ortho is not None else \
-        ("file" if kind == "range_image" else None)
-    settings = {"subsample": args.subsample, "depth_scale": args.depth_scale, "noise": args.noise,
-                "camera_source": camera_source, "options": dataclasses.asdict(options)}
+    camera_source = "--intrinsics" if args.intrinsics is not None else "--camera" if args.camera is not None \
+        else "--ortho" if args.ortho is not None else ("file" if kind == "range_image" else None)
+    settings = {"subsample": args.subsample, "depth_scale": args.depth_scale, "depth_scale_convention":
+                "stored units per metre (divides)", "noise": args.noise, "camera_source": camera_source,
+                "color": None if args.color is None else str(args.color), "options": dataclasses.asdict(options)}
     _segment_and_write(data, kind, out, input_path=path, input_shape=input_shape, settings=settings,
                        options=options, figure=not args.no_figure, quiet=args.quiet)
     return 0
@@ -332,24 +451,26 @@ def cmd_demo(args) -> int:
     from .scenes import paper_scene
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    options = _segment_options(None, None)
+    _check_out_dir(out)
     image, truth = paper_scene("occluded_block", shape=args.shape, noise=args.noise, seed=0)
     scene = out / "scene.npz"
     write_range_image(scene, image)
     print(f"sqjax demo: the paper's Fig. 3 scene (a block behind a cylinder, and a sphere), "
           f"{image.shape[0]}x{image.shape[1]} pixels, {len(truth)} true parts -> {scene}")
     data, _ = load_input(scene)
-    options = _segment_options(None, None)
     settings = {"subsample": 1, "depth_scale": None, "noise": None, "camera_source": "file",
                 "options": dataclasses.asdict(options), "scene": "occluded_block"}
-    seg, _ = _segment_and_write(data, "range_image", out, input_path=scene, input_shape=data.shape,
-                                settings=settings, options=options, figure=not args.no_figure, quiet=False)
+    seg, written = _segment_and_write(data, "range_image", out, input_path=scene, input_shape=data.shape,
+                                      settings=settings, options=options, figure=not args.no_figure, quiet=False)
     from .evaluate import hoover
 
     score = hoover(data.labels, seg.labels)
     print(f"Hoover scores against the truth (T = 0.8): {score.correct} of {score.n_truth} parts correct, "
           f"{score.over} over-, {score.under} under-segmented, {score.missed} missed, {score.noise} noise")
-    print(f"next: open {out / 'figure.png'}, or run  sqjax evaluate {out} {scene}")
+    fig = written.get("figure.png")
+    look = f"open {fig}, or run " if fig is not None and Path(fig).is_file() else "run "
+    print(f"next: {look} sqjax evaluate {out} {scene}")
     return 0
 
 
@@ -369,26 +490,38 @@ def _scene(name: str, shape, noise, seed):
 
 
 def cmd_render(args) -> int:
-    from .export import superquadric_dict, write_json
+    from .export import atomic_paths, check_writable_file, dumps, superquadric_dict
     from .formats import write_range_image
 
     out = Path(args.out)
     if out.suffix.lower() not in (".npz", ".pcd", ".png"):
         raise CLIError(f"{out}: --out must end in .npz (depth, labels, camera), .pcd or .png")
-    image, truth = _scene(args.scene, args.shape, args.noise, args.seed)
+    json_path = Path(args.json) if args.json else None
     if out.parent != Path(""):
-        out.parent.mkdir(parents=True, exist_ok=True)
-    write_range_image(out, image, depth_scale=args.depth_scale)
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OSError(e.errno, f"{out}: cannot create folder {out.parent} ({e.strerror})") from None
+    for target in (out, json_path):   # both writable, or neither is written (before the ray casting)
+        if target is not None:
+            check_writable_file(target)
+    image, truth = _scene(args.scene, args.shape, args.noise, args.seed)
+    doc = None
+    if json_path is not None:
+        doc = {"version": 1, "scene": args.scene, "image_size": list(image.shape), "camera": image.camera.to_dict(),
+               "parts": [{"label": i + 1, **superquadric_dict(sq)} for i, sq in enumerate(truth)]}
+    with atomic_paths(*(p for p in (json_path,) if p is not None)) as tmps:
+        if tmps:
+            tmps[0].write_text(dumps(doc) + "\n")
+        write_range_image(out, image, depth_scale=args.depth_scale)  # atomic itself; the JSON follows it
     msg = f"wrote {out}: {image.shape[0]}x{image.shape[1]} range image of {args.scene!r}, {len(truth)} parts"
     if out.suffix.lower() == ".png":
-        msg += f" (16-bit depth / {args.depth_scale}; no labels or camera: read with --camera " \
+        msg += f" (16-bit depth x {args.depth_scale:g}; no labels or camera: read with --camera " \
                f"{image.camera.fx:g},{image.camera.fy:g},{image.camera.cx:g},{image.camera.cy:g} " \
                f"--depth-scale {args.depth_scale:g})"
     print(msg)
-    if args.json:
-        doc = {"version": 1, "scene": args.scene, "image_size": list(image.shape), "camera": image.camera.to_dict(),
-               "parts": [{"label": i + 1, **superquadric_dict(sq)} for i, sq in enumerate(truth)]}
-        print(f"wrote {write_json(doc, args.json)}: true parameters")
+    if json_path is not None:
+        print(f"wrote {json_path}: true parameters")
     return 0
 
 
@@ -431,24 +564,24 @@ def cmd_evaluate(args) -> int:
     from .evaluate import hoover
     from .export import write_json
 
+    from .export import read_models_json
+
     result = Path(args.result)
     meta = {}
+    if args.json:
+        from .export import check_writable_file
+
+        check_writable_file(args.json)
     if result.is_dir():
         labels_path = result / "labels.npy"
         if (result / "models.json").exists():
-            try:
-                meta = json.loads((result / "models.json").read_text())
-            except json.JSONDecodeError as e:
-                raise CLIError(f"{result / 'models.json'}: not valid JSON ({e})") from None
+            meta = read_models_json(result / "models.json")
     else:
         labels_path = result
         if result.suffix.lower() != ".npy":
             raise CLIError(f"{result}: RESULT must be a directory written by 'sqjax segment' or a labels .npy file")
         if (result.parent / "models.json").exists() and result.name == "labels.npy":
-            try:
-                meta = json.loads((result.parent / "models.json").read_text())
-            except json.JSONDecodeError:
-                meta = {}
+            meta = read_models_json(result.parent / "models.json")
     if not labels_path.exists():
         raise FileNotFoundError(f"{labels_path}: no such file")
     try:
@@ -459,7 +592,10 @@ def cmd_evaluate(args) -> int:
         raise CLIError(f"{labels_path}: labels must be integers, got {found.dtype}")
     truth_path = Path(args.truth)
     truth = _read_truth_labels(truth_path)
-    step = int((meta.get("settings") or {}).get("subsample") or 1)
+    step = (meta.get("settings") or {}).get("subsample") or 1
+    if isinstance(step, bool) or not isinstance(step, int) or step < 1:
+        raise CLIError(f"{labels_path.parent / 'models.json'}: settings.subsample must be an integer >= 1, "
+                       f"got {step!r}")
     if truth.shape != found.shape and step > 1:
         truth = truth[::step, ::step] if truth.ndim == 2 else truth[::step]
     if truth.shape != found.shape:
@@ -487,10 +623,17 @@ def cmd_fit(args) -> int:
     from .formats import read_points
 
     path = Path(args.points)
+    if args.json:
+        from .export import check_writable_file
+
+        check_writable_file(args.json)
     pts = read_points(path)
     if args.depth_scale is not None:
-        pts = pts * args.depth_scale
-    result = fit(pts, max_steps=args.max_steps, deform=args.deform)
+        pts = pts / args.depth_scale
+    try:
+        result = fit(pts, max_steps=args.max_steps, deform=args.deform)
+    except ValueError as e:   # e.g. too few valid points: say which input
+        raise CLIError(f"{path}: {_one_line(e)}") from None
     doc = fit_dict(result, input_path=path)
     deg = np.degrees(doc["euler_zyz"])
     status = "converged" if doc["converged"] else "NOT converged (raise --max-steps?)"
@@ -522,10 +665,14 @@ def build_parser() -> argparse.ArgumentParser:
                 epilog="Start with 'sqjax demo'. Each command has --help.")
     p.add_argument("--version", action="version", version=f"sqjax {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--no-cache", action="store_true",
+                        help="do not use the on-disk compilation cache (also: SQJAX_NO_CACHE=1); "
+                        "default folder $XDG_CACHE_HOME/sqjax/jax or ~/.cache/sqjax/jax ($SQJAX_CACHE_DIR)")
 
-    s = sub.add_parser("segment", help="segment a range image or point cloud into superquadric parts",
+    s = sub.add_parser("segment", parents=[common], help="segment a range image or point cloud into superquadric parts",
                        description="Segment INPUT into superquadric parts (recover-and-select) and write "
-                       "models.json, labels.npy, labels.png (clouds: labels.ply), parts.glb, parts.ply and "
+                       "models.json, labels.npy, labels.png, labels_id.png (clouds: labels.ply), parts.glb (Y-up), parts.ply and "
                        "figure.png into DIR. Inputs: " + _SUPPORTED + ".")
     s.add_argument("input", metavar="INPUT", help="range image or point cloud file")
     cam = s.add_mutually_exclusive_group()
@@ -533,8 +680,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="pinhole intrinsics in pixels (needed for .npy/.png depth; overrides a stored camera)")
     cam.add_argument("--ortho", type=_ortho_arg, metavar="PIXEL[,cx,cy]",
                      help="orthographic camera: pixel size in depth units (principal point: the image centre)")
-    s.add_argument("--depth-scale", type=_positive(float), metavar="S",
-                   help="multiply stored depths / coordinates by S (e.g. 0.001 for millimetres -> metres)")
+    cam.add_argument("--intrinsics", metavar="FILE.json",
+                     help="pinhole intrinsics JSON: fx, fy, cx, cy (or x_offset, y_offset) or Open3D's "
+                     "intrinsic_matrix")
+    s.add_argument("--color", metavar="IMAGE", help="colour image registered to the depth (RGB-D); used in figure.png")
+    s.add_argument("--depth-scale", type=_depth_scale_arg, metavar="S",
+                   help="stored depth units per metre, divides (Open3D's convention): 1000 for millimetres; "
+                   "default: use the stored values")
     s.add_argument("--subsample", type=_positive(int), default=1, metavar="STEP",
                    help="use every STEP-th row and column (every STEP-th point of a cloud); default 1")
     s.add_argument("--noise", type=_positive(float), metavar="SIGMA",
@@ -546,31 +698,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     s.set_defaults(func=cmd_segment)
 
-    d = sub.add_parser("demo", help="segment a generated scene of the paper (no download)",
+    d = sub.add_parser("demo", parents=[common], help="segment a generated scene of the paper (no download)",
                        description="Render the paper's Fig. 3 scene (a block seen in two pieces behind a "
                        "cylinder, and a sphere), segment it and write the results and the figure to DIR.")
     d.add_argument("--out", default="sqjax-demo", metavar="DIR", help="output folder (default: ./sqjax-demo)")
     d.add_argument("--shape", type=_shape_arg, default=(120, 160), metavar="H,W", help="image size (default 120,160)")
-    d.add_argument("--noise", type=float, default=0.002, metavar="SIGMA", help="depth noise std (default 0.002)")
+    d.add_argument("--noise", type=_noise_arg, default=0.002, metavar="SIGMA", help="depth noise std (default 0.002)")
     d.add_argument("--no-figure", action="store_true", help="do not draw figure.png")
     d.set_defaults(func=cmd_demo)
 
-    r = sub.add_parser("render", help="write a labelled synthetic range image",
+    r = sub.add_parser("render", parents=[common], help="write a labelled synthetic range image",
                        description="Ray cast a synthetic scene: SCENE is one of the paper's scenes "
                        "(sphere_cylinder, two_cylinders, occluded_block) or random:SEED. Writes depth, labels "
                        "and camera (.npz, .pcd) or 16-bit depth only (.png).")
     r.add_argument("scene", metavar="SCENE", help="sphere_cylinder | two_cylinders | occluded_block | random:SEED")
     r.add_argument("--out", required=True, metavar="FILE", help="output .npz, .pcd or .png")
     r.add_argument("--shape", type=_shape_arg, default=(120, 160), metavar="H,W", help="image size (default 120,160)")
-    r.add_argument("--noise", type=float, default=None, metavar="SIGMA",
+    r.add_argument("--noise", type=_noise_arg, default=None, metavar="SIGMA",
                    help="depth noise std (default: 0 for paper scenes, 0.005 for random ones)")
     r.add_argument("--seed", type=int, default=0, help="noise seed of paper scenes (default 0)")
-    r.add_argument("--depth-scale", type=_positive(float), default=1e-3, metavar="S",
-                   help=".png only: stored value = depth / S (default 0.001)")
+    r.add_argument("--depth-scale", type=_depth_scale_arg, default=1000.0, metavar="S",
+                   help=".png only: stored value = depth x S, S = stored units per metre (default 1000: mm)")
     r.add_argument("--json", metavar="OUT", help="also write the true superquadrics as JSON")
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("evaluate", help="Hoover scores of a segmentation against ground-truth labels",
+    e = sub.add_parser("evaluate", parents=[common], help="Hoover scores of a segmentation against ground-truth labels",
                        description="Compare found labels (a 'sqjax segment' output folder or its labels.npy) "
                        "with ground truth (.npz or .pcd with labels, or a .npy label array) by the region "
                        "classification of Hoover et al. (1996). A --subsample recorded in models.json is "
@@ -581,20 +733,23 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", metavar="OUT", help="write the scores as JSON")
     e.set_defaults(func=cmd_evaluate)
 
-    f = sub.add_parser("fit", help="fit one superquadric to a point set",
+    f = sub.add_parser("fit", parents=[common], help="fit one superquadric to a point set",
                        description="Recover one superquadric from POINTS (.ply, .npy, .xyz, .txt, .pcd, .obj, "
                        ".stl) and print its parameters; --json writes them (schema: 'python -m pydoc sqjax.cli').")
     f.add_argument("points", metavar="POINTS", help="point set file")
     f.add_argument("--json", metavar="OUT", help="write the parameters as JSON")
     f.add_argument("--deform", action="store_true", help="also fit tapering and bending")
     f.add_argument("--max-steps", type=_positive(int), default=20, metavar="N", help="LM steps (default 20)")
-    f.add_argument("--depth-scale", type=_positive(float), metavar="S", help="multiply coordinates by S")
+    f.add_argument("--depth-scale", type=_depth_scale_arg, metavar="S",
+                   help="stored units per metre: coordinates are divided by S (1000 for millimetres)")
     f.set_defaults(func=cmd_fit)
     return p
 
 
 def _one_line(e: BaseException) -> str:
     msg = str(e) or type(e).__name__
+    if isinstance(e, OSError) and e.strerror and e.errno is not None:
+        msg = e.strerror    # without the "[Errno N]" prefix; our own messages carry the path in strerror
     if isinstance(e, OSError) and e.filename and str(e.filename) not in msg:
         msg = f"{e.filename}: {msg}"
     return " ".join(msg.split())
@@ -608,6 +763,11 @@ def main(argv=None) -> int:
     except SystemExit as e:  # --help, --version and usage errors (already reported)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     try:
+        if not getattr(args, "no_cache", False):
+            from .cache import cache_disabled_by_env, enable_compilation_cache
+
+            if not cache_disabled_by_env():
+                enable_compilation_cache()
         return args.func(args)
     except BrokenPipeError:  # `sqjax ... | head`: stop quietly (Python docs, "Note on SIGPIPE")
         try:

@@ -2,6 +2,15 @@
 
 No matplotlib here: the palette `label_colors` is shared by `labels.png`, the meshes and `sqjax.plot`.
 
+Frames: `models.json`, `labels.npy` and `parts.ply` are in the camera frame of the input (x right,
+y down, z forward). `parts.glb` is glTF, which is Y-up with the viewer on +z: its nodes are the camera
+frame turned 180 degrees about x, (x, y, z) -> (x, -y, -z), so scenes open upright in glTF viewers.
+
+Writes are safe: everything is written into a temporary folder inside the output folder and then renamed
+into place one file at a time (`os.replace`, which never follows a symlink at the destination), so a
+failed run leaves the previous outputs as they were and no partial file. `read_segmentation` reads a
+folder back.
+
 `models.json` (written by `write_segmentation`, schema version 1)::
 
     {
@@ -35,10 +44,14 @@ No matplotlib here: the palette `label_colors` is shared by `labels.png`, the me
 from __future__ import annotations
 
 import colorsys
+import contextlib
+import dataclasses
+import errno
 import json
 import os
 import re
-import warnings
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +112,20 @@ def labels_to_png(labels, path, valid=None) -> Path:
     return path
 
 
+def labels_to_id_png(labels, path) -> Path:
+    """Write a label image `(H, W)` as a 16-bit greyscale PNG of the label ids (0 = unlabelled)."""
+    from PIL import Image
+
+    labels = np.asarray(labels)
+    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer):
+        raise ValueError(f"{path}: labels must be an (H, W) integer array, got {labels.dtype} {labels.shape}")
+    if labels.size and (labels.min() < 0 or labels.max() > 65535):
+        raise ValueError(f"{path}: label ids must lie in 0..65535 for a 16-bit PNG")
+    path = Path(path)
+    Image.fromarray(labels.astype(np.uint16)).save(path, format="PNG")
+    return path
+
+
 # ----------------------------------------------------------------------------------------------------
 # meshes
 
@@ -107,11 +134,30 @@ def _superquadric(part):
     return getattr(part, "superquadric", part)
 
 
+def unbatch(sq) -> list:
+    """A batched `Superquadric` (fields `(K, ...)`) -> list of K single ones; a single one -> [it]."""
+    import jax
+
+    if np.ndim(sq.size) == 1:
+        return [sq]
+    if np.ndim(sq.size) != 2:
+        raise ValueError(f"unbatch: expected one batch axis, got size of shape {np.shape(sq.size)}")
+    return [jax.tree_util.tree_map(lambda x, i=i: x[i], sq) for i in range(np.shape(sq.size)[0])]
+
+
+def _as_list(parts) -> list:
+    """Parts, Superquadrics, or one batched Superquadric -> list of single Superquadric-likes."""
+    if hasattr(parts, "size") and hasattr(parts, "epsilon") and not isinstance(parts, (list, tuple)):
+        return unbatch(parts)
+    return [_superquadric(p) for p in parts]
+
+
 def part_meshes(parts, resolution: int = 32) -> list:
-    """One `trimesh.Trimesh` per part (a `segment.Part` or a `Superquadric`), vertex-coloured by
-    `label_colors` in the order given."""
+    """One `trimesh.Trimesh` per part (`segment.Part`s, `Superquadric`s, or one batched `Superquadric`),
+    vertex-coloured by `label_colors` in the order given."""
     from .superquadric import to_trimesh
 
+    parts = _as_list(parts)
     colors = label_colors(len(parts))
     meshes = []
     for part, c in zip(parts, colors):
@@ -121,13 +167,22 @@ def part_meshes(parts, resolution: int = 32) -> list:
     return meshes
 
 
-def parts_to_scene(parts, resolution: int = 32):
-    """`trimesh.Scene` with one coloured mesh per part, named `part_1`, `part_2`, ... (label order)."""
+GLTF_FROM_CAMERA = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Camera frame (x right, y down, z forward) -> glTF (y up, z toward the viewer): 180 degrees about x."""
+
+
+def parts_to_scene(parts, resolution: int = 32, *, y_up: bool = False):
+    """`trimesh.Scene` with one coloured mesh per part, named `part_1`, `part_2`, ... (label order).
+
+    `parts`: `segment.Part`s, `Superquadric`s or one batched `Superquadric`. `y_up=True` places every node
+    with `GLTF_FROM_CAMERA` (as `parts.glb` is written); the default keeps the camera frame.
+    """
     import trimesh
 
     scene = trimesh.Scene()
     for i, m in enumerate(part_meshes(parts, resolution)):
-        scene.add_geometry(m, node_name=f"part_{i + 1}", geom_name=f"part_{i + 1}")
+        scene.add_geometry(m, node_name=f"part_{i + 1}", geom_name=f"part_{i + 1}",
+                           transform=GLTF_FROM_CAMERA if y_up else None)
     return scene
 
 
@@ -254,14 +309,209 @@ def dumps(doc) -> str:
 
 
 def write_json(doc: dict, path) -> Path:
-    """Write `doc` as JSON (`dumps`) to `path`; returns the path."""
-    path = Path(path)
-    path.write_text(dumps(doc) + "\n")
+    """Write `doc` as JSON (`dumps`) to `path`, atomically (`atomic_paths`); returns the path."""
+    path = Path(os.fspath(path))
+    text = dumps(doc) + "\n"
+    with atomic_paths(path) as (tmp,):
+        tmp.write_text(text)
     return path
 
 
 # ----------------------------------------------------------------------------------------------------
+# safe writing: temporaries beside the targets, renamed into place
+
+
+def _write_error(path, e: OSError) -> OSError:
+    """An OSError whose message names `path` (the caller's target, not a temporary)."""
+    return OSError(e.errno, f"{path}: cannot write ({e.strerror or type(e).__name__})") if e.errno else \
+        OSError(f"{path}: cannot write ({e})")
+
+
+def check_writable_dir(path) -> Path:
+    """Create folder `path` if needed and prove it writable by creating (and removing) a temporary
+    folder in it; raises OSError naming `path` otherwise. Call before long work."""
+    path = Path(os.fspath(path))
+    if os.path.lexists(path) and not path.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, f"{path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=".sqjax-check-", dir=path))
+    except OSError as e:
+        raise _write_error(path, e) from None
+    return path
+
+
+def check_writable_file(path) -> Path:
+    """Prove that file `path` can be written (its folder exists and takes a new file; `path` is not a
+    folder), without touching `path` itself; raises OSError naming `path`."""
+    path = Path(os.fspath(path))
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, f"{path}: is a folder, expected a file name")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise FileNotFoundError(errno.ENOENT, f"{path}: folder {parent} does not exist")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".check", dir=parent)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise _write_error(path, e) from None
+    return path
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_paths(*paths):
+    """Yield one temporary path per target (same folder, same extension, created exclusively); on
+    success each is renamed onto its target with `os.replace` (a symlink at the target is replaced,
+    never followed), on failure all are removed and no target is touched."""
+    targets = [Path(os.fspath(p)) for p in paths]
+    tmps = []
+    try:
+        for t in targets:
+            if t.is_dir() and not t.is_symlink():
+                raise IsADirectoryError(errno.EISDIR, f"{t}: is a folder, expected a file name")
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f".{t.name}.", suffix=t.suffix, dir=t.parent if str(t.parent) else ".")
+            except OSError as e:
+                raise _write_error(t, e) from None
+            os.close(fd)
+            tmps.append(Path(tmp))
+            os.chmod(tmp, 0o666 & ~_umask())   # mkstemp makes 0600; outputs get the usual permissions
+        try:
+            yield tuple(tmps)
+        except OSError as e:
+            bad = getattr(e, "filename", None)
+            named = {str(tmp): t for tmp, t in zip(tmps, targets)}
+            if bad is not None and str(bad) in named:
+                raise _write_error(named[str(bad)], e) from None
+            raise
+        for tmp, t in zip(tmps, targets):
+            try:
+                os.replace(tmp, t)
+            except OSError as e:
+                raise _write_error(t, e) from None
+    finally:
+        for tmp in tmps:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+
+# ----------------------------------------------------------------------------------------------------
+# reading results back
+
+
+def superquadric_from_dict(d: dict):
+    """A `Superquadric` from one entry of `models.json` `parts` (or `Superquadric.to_dict()` / `sqjax fit
+    --json` output): `size`, `epsilon`, `rotation` (else `euler_zyz`), `translation`, `taper`, `bend`;
+    other keys (label, colour, error, ...) are ignored."""
+    from .superquadric import Superquadric
+
+    if not isinstance(d, dict):
+        raise ValueError(f"a superquadric must be a JSON object, got {type(d).__name__}")
+    if "size" not in d:
+        raise ValueError(f"a superquadric needs 'size' (keys: {', '.join(sorted(d)) or 'none'})")
+    try:
+        arr = {k: np.asarray(d[k], np.float64) for k in ("size", "epsilon", "rotation", "euler_zyz",
+                                                         "translation", "taper", "bend") if d.get(k) is not None}
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"a superquadric's parameters must be numbers ({e})") from None
+    shapes = {"size": (3,), "epsilon": (2,), "rotation": (3, 3), "euler_zyz": (3,), "translation": (3,),
+              "taper": (2,), "bend": (2,)}
+    for k, v in arr.items():
+        if v.shape != shapes[k] or not np.isfinite(v).all():
+            raise ValueError(f"superquadric '{k}' must be {shapes[k]} finite numbers, got {d[k]!r}")
+    kw = {k: arr[k] for k in ("epsilon", "translation", "taper", "bend") if k in arr}
+    if "rotation" in arr:
+        kw["rotation"] = arr["rotation"]
+    elif "euler_zyz" in arr:
+        kw["euler"] = arr["euler_zyz"]
+    return Superquadric.create(arr["size"], **kw)
+
+
+@dataclasses.dataclass(frozen=True)
+class SavedSegmentation:
+    """A result folder read back by `read_segmentation`: the `models.json` document (`doc`), its parts as
+    `Superquadric`s (`superquadrics`, label order), the label array (`labels`, None when labels.npy is
+    absent) and the camera (None for clouds)."""
+
+    doc: dict
+    superquadrics: list
+    labels: np.ndarray | None
+    camera: object | None
+
+    @property
+    def parts(self) -> list:
+        return self.doc["parts"]
+
+
+def read_models_json(path) -> dict:
+    """Read and check a `models.json` (a JSON object with a `parts` list); errors name the file."""
+    path = Path(os.fspath(path))
+    if not path.is_file():
+        raise FileNotFoundError(errno.ENOENT, f"{path}: no such file")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 JSON ({e})") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    except OSError as e:
+        raise OSError(e.errno, f"{path}: cannot read ({e.strerror})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object (a models.json written by sqjax), got a "
+                         f"{type(doc).__name__}")
+    parts = doc.get("parts", [])
+    if not isinstance(parts, list) or not all(isinstance(p, dict) for p in parts):
+        raise ValueError(f"{path}: 'parts' must be a list of objects")
+    settings = doc.get("settings")
+    if settings is not None and not isinstance(settings, dict):
+        raise ValueError(f"{path}: 'settings' must be an object, got {type(settings).__name__}")
+    return doc
+
+
+def read_segmentation(out_dir) -> SavedSegmentation:
+    """Read a folder written by `write_segmentation` / `sqjax segment` back: models.json, labels.npy.
+
+    Raises FileNotFoundError / ValueError naming the file at fault.
+    """
+    from .rangeimage import camera_from_dict
+
+    out = Path(os.fspath(out_dir))
+    if not out.is_dir():
+        raise FileNotFoundError(errno.ENOENT, f"{out}: no such folder")
+    doc = read_models_json(out / "models.json")
+    sqs = []
+    for i, p in enumerate(doc.get("parts", [])):
+        try:
+            sqs.append(superquadric_from_dict(p))
+        except ValueError as e:
+            raise ValueError(f"{out / 'models.json'}: part {i + 1}: {e}") from None
+    labels = None
+    if (out / "labels.npy").is_file():
+        try:
+            labels = np.load(out / "labels.npy", allow_pickle=False)
+        except Exception as e:  # numpy reports damaged files in many ways
+            raise ValueError(f"{out / 'labels.npy'}: could not read ({type(e).__name__}: {e})") from None
+    camera = None
+    if isinstance(doc.get("camera"), dict):
+        try:
+            camera = camera_from_dict(doc["camera"])
+        except ValueError as e:
+            raise ValueError(f"{out / 'models.json'}: {e}") from None
+    return SavedSegmentation(doc, sqs, labels, camera)
+
+
+# ----------------------------------------------------------------------------------------------------
 # everything the CLI writes
+
+OUTPUT_NAMES = ("models.json", "labels.npy", "labels.png", "labels_id.png", "labels.ply", "parts.glb",
+                "parts.ply", "figure.png")
 
 
 def write_segmentation(seg, image, out_dir, *, input_path=None, input_shape=None, settings=None,
@@ -271,48 +521,65 @@ def write_segmentation(seg, image, out_dir, *, input_path=None, input_shape=None
     - `models.json`: parameters and run information (module docstring).
     - `labels.npy`: the raw int32 label array (`seg.labels`; (H, W) images, (P,) clouds).
     - `labels.png` (images): the labels coloured by `label_colors`, unexplained valid pixels grey;
+      `labels_id.png` (images): the label ids as a 16-bit PNG (0 = unlabelled, i + 1 = part i);
       `labels.ply` (clouds, `image` an (P, 3) array or None with `points`): points coloured by label.
-    - `parts.glb` (a `trimesh.Scene`, one node per part) and `parts.ply` (one concatenated mesh),
-      vertex-coloured like labels.png; not written when there is no part.
-    - `figure.png` (when `figure` and matplotlib is installed): `sqjax.plot.figure_sequence`.
+    - `parts.glb` (a `trimesh.Scene`, one node per part, glTF Y-up: see the module docstring) and
+      `parts.ply` (one concatenated mesh, camera frame), vertex-coloured like labels.png; not written
+      when there is no part.
+    - `figure.png` (when `figure`): `sqjax.plot.figure_sequence`.
 
+    Everything is first written into a temporary folder inside `out_dir`, then renamed into place; files
+    of an earlier run that this one does not write are removed. Symlinks are replaced, never followed.
     `image`: the `RangeImage` segmented, or the `(P, 3)` points of a cloud.
     """
     from .rangeimage import RangeImage
 
-    out = Path(os.fspath(out_dir))
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_writable_dir(out_dir)
     is_image = isinstance(image, RangeImage)
-    written = {}
-    doc = segmentation_dict(seg, image if is_image else None, input_path=input_path, input_shape=input_shape,
-                            settings=settings)
-    written["models.json"] = write_json(doc, out / "models.json")
-    labels = np.asarray(seg.labels, np.int32)
-    with open(out / "labels.npy", "wb") as f:
-        np.save(f, labels)
-    written["labels.npy"] = out / "labels.npy"
-    if is_image:
-        written["labels.png"] = labels_to_png(labels, out / "labels.png", valid=image.valid)
-    elif image is not None:
-        written["labels.ply"] = labelled_points_to_ply(image, labels, out / "labels.ply")
-    if seg.parts:
-        scene = parts_to_scene(seg.parts, resolution)
-        scene.export(out / "parts.glb")
-        written["parts.glb"] = out / "parts.glb"
-        parts_to_mesh(seg.parts, resolution).export(out / "parts.ply")
-        written["parts.ply"] = out / "parts.ply"
-    if figure:
-        try:
-            import matplotlib  # noqa: F401
-        except ImportError:
-            warnings.warn("matplotlib is not installed (pip install 'sqjax[plot]'): figure.png not written",
-                          stacklevel=2)
-        else:
+    stage = Path(tempfile.mkdtemp(prefix=".sqjax-write-", dir=out))
+    made = {}
+    try:
+        doc = segmentation_dict(seg, image if is_image else None, input_path=input_path,
+                                input_shape=input_shape, settings=settings)
+        (stage / "models.json").write_text(dumps(doc) + "\n")
+        made["models.json"] = None
+        labels = np.asarray(seg.labels, np.int32)
+        with open(stage / "labels.npy", "wb") as f:
+            np.save(f, labels)
+        made["labels.npy"] = None
+        if is_image:
+            labels_to_png(labels, stage / "labels.png", valid=image.valid)
+            made["labels.png"] = None
+            if labels.size == 0 or labels.max() <= 65535:
+                labels_to_id_png(labels, stage / "labels_id.png")
+                made["labels_id.png"] = None
+        elif image is not None:
+            labelled_points_to_ply(image, labels, stage / "labels.ply")
+            made["labels.ply"] = None
+        if seg.parts:
+            parts_to_scene(seg.parts, resolution, y_up=True).export(stage / "parts.glb")
+            made["parts.glb"] = None
+            parts_to_mesh(seg.parts, resolution).export(stage / "parts.ply")
+            made["parts.ply"] = None
+        if figure:
             from .plot import figure_sequence
 
-            figure_sequence(image, seg, out / "figure.png")
-            written["figure.png"] = out / "figure.png"
-    for name in ("labels.png", "labels.ply", "parts.glb", "parts.ply", "figure.png"):
-        if name not in written and (out / name).is_file():   # left by an earlier run: would not match
-            (out / name).unlink()
+            figure_sequence(image, seg, stage / "figure.png")
+            made["figure.png"] = None
+        written = {}
+        for name in made:
+            try:
+                os.replace(stage / name, out / name)
+            except OSError as e:
+                raise _write_error(out / name, e) from None
+            written[name] = out / name
+        for name in OUTPUT_NAMES:
+            if name not in written and os.path.lexists(out / name) and not (out / name).is_dir():
+                (out / name).unlink()   # left by an earlier run: would not match (a symlink: the link goes)
+    except OSError as e:
+        if e.filename is not None and str(stage) in str(e.filename):
+            raise _write_error(out / Path(e.filename).name, e) from None
+        raise
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     return written

@@ -3,17 +3,24 @@
 Range images (`read_range_image` / `write_range_image`): `.npy` / `.npz` depth arrays, 16-bit `.png`
 depth, and organised PCL `.pcd` clouds (HEIGHT > 1; `DATA ascii`, `binary`, `binary_compressed`).
 Point sets (`read_points` / `write_points`): `.ply`, `.xyz` / `.txt`, `.npy`, `.pcd`, and the vertices
-of `.obj` / `.stl` meshes. Lengths are in the file's units (PCD clouds are usually metres);
-`depth_scale` converts stored values. Failing to read a file raises `FileNotFoundError` or a
+of `.obj` / `.stl` meshes. RGB-D frames (`read_rgbd`): a 16-bit depth PNG, an optional colour image
+and intrinsics JSON. Lengths are in the file's units (PCD clouds are usually metres) unless
+`depth_scale` is given.
+
+`depth_scale` follows Open3D: stored depth units per metre (1000 for millimetres), and stored values are
+*divided* by it (`write_*` multiply). Values below 1 are refused: before sqjax 0.2 the scale multiplied
+(0.001 for millimetres); pass 1000 instead. Failing to read a file raises `FileNotFoundError` or a
 `ValueError` whose message starts with the file's path.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import os
 import pickle
 import struct
+import warnings
 import zipfile
 import zlib
 from pathlib import Path
@@ -142,15 +149,25 @@ def _read_pcd(path: Path):
         raise ValueError(f"PCD has no x y z fields (FIELDS {' '.join(names)})")
     xyz = np.concatenate([fields[n][:, :1].astype(np.float64) for n in "xyz"], 1)
     labels = fields["label"][:, 0].astype(np.int64) if "label" in fields else None
-    return xyz, labels, width, height
+    return xyz, labels, width, height, _pcd_colors(fields)
+
+
+def _pcd_colors(fields) -> np.ndarray | None:
+    """(N, 3) uint8 RGB from a PCD `rgb` / `rgba` field (4 bytes packed 0xAARRGGBB, stored as F or U)."""
+    name = "rgb" if "rgb" in fields else "rgba" if "rgba" in fields else None
+    if name is None or fields[name].dtype.itemsize != 4:
+        return None
+    packed = np.ascontiguousarray(fields[name][:, 0]).view(np.uint32)
+    return np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(np.uint8)
 
 
 def _pcd_image(path):
-    xyz, labels, width, height = _read_pcd(path)
+    xyz, labels, width, height, rgb = _read_pcd(path)
     if height <= 1:
         raise ValueError(f"unorganised PCD (HEIGHT {height}, WIDTH {width}) is not a range image; use read_points")
     xyz = xyz.reshape(height, width, 3)
-    return xyz[..., 2], None if labels is None else labels.reshape(height, width), xyz, None
+    return (xyz[..., 2], None if labels is None else labels.reshape(height, width), xyz, None,
+            None if rgb is None else rgb.reshape(height, width, 3))
 
 
 def _write_pcd(path, image: RangeImage, data="binary", **_):
@@ -191,7 +208,7 @@ def _load_npy(path):
 
 
 def _npy_image(path):
-    return _load_npy(path), None, None, None
+    return _load_npy(path), None, None, None, None
 
 
 def _npz_image(path):
@@ -200,6 +217,7 @@ def _npz_image(path):
             if "depth" not in z:
                 raise ValueError(f"npz has no 'depth' array (keys: {sorted(z.keys())})")
             get = {k: z[k] for k in ("depth", "labels", "points", "fx", "fy", "cx", "cy", "pixel_size") if k in z}
+            colors = z["colors"] if "colors" in z else None
     except ValueError:
         raise
     except Exception as e:  # zipfile / numpy report damaged archives in many ways
@@ -209,36 +227,66 @@ def _npz_image(path):
     if cam and "pixel_size" not in cam and len(cam) < 4:
         raise ValueError(f"incomplete camera in npz: has {sorted(cam)}, needs fx, fy, cx, cy or pixel_size")
     stored = (OrthographicCamera(**cam) if "pixel_size" in cam else PinholeCamera(**cam)) if cam else None
-    return depth, labels, points, stored
+    return depth, labels, points, stored, colors
 
 
-def _png_image(path):
+def _open_image(path, what: str = "image"):
+    """PIL's `Image.open(path)` fully loaded, with PIL's failures (broken files, decompression bombs:
+    more pixels than `PIL.Image.MAX_IMAGE_PIXELS`) as ValueErrors without the path (the caller adds it)."""
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
-            if im.mode not in ("I;16", "I;16B", "I;16L", "I"):
-                raise ValueError(f"PNG mode {im.mode!r} is not a 16-bit depth image")
-            return np.asarray(im), None, None, None
-    except (OSError, SyntaxError) as e:  # PIL reports broken PNGs as either
-        raise ValueError(f"could not read PNG ({type(e).__name__}: {e})") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            im = Image.open(path)
+            im.load()
+            return im
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise ValueError(f"{what} refused as a possible decompression bomb ({e}); raise "
+                         "PIL.Image.MAX_IMAGE_PIXELS if you trust the file") from None
+    except (OSError, SyntaxError) as e:  # PIL reports broken images as either
+        raise ValueError(f"could not read {what} ({type(e).__name__}: {e})") from None
+
+
+def _png_image(path):
+    with _open_image(path, "PNG") as im:
+        if im.mode not in ("I;16", "I;16B", "I;16L", "I"):
+            raise ValueError(f"PNG mode {im.mode!r} is not a 16-bit depth image")
+        return np.asarray(im), None, None, None, None
+
+
+def check_depth_scale(depth_scale, what: str = "depth_scale"):
+    """Refuse a `depth_scale` that is not finite and >= 1 (Open3D's convention: stored units per metre)."""
+    if depth_scale is None:
+        return None
+    try:
+        v = float(depth_scale)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number, got {depth_scale!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{what} must be finite and > 0, got {depth_scale}")
+    if v < 1:
+        raise ValueError(f"{what} is stored depth units per metre and divides (Open3D's convention), so it is "
+                         f">= 1; got {depth_scale:g}, the old multiplying convention: pass {1 / v:g} instead")
+    return v
 
 
 def _range_image(parts, camera, scale):
-    depth, labels, points, stored = parts
+    depth, labels, points, stored, colors = parts
     if np.ndim(depth) != 2 or not np.issubdtype(depth.dtype, np.number):
         raise ValueError(f"depth must be a numeric (H, W) array, got {depth.dtype} of shape {depth.shape}")
     if scale is not None:
-        depth, points = depth * scale, None if points is None else points * scale
+        depth, points = depth / scale, None if points is None else points / scale
     camera = stored if camera is None else camera
     if camera is None and points is None:
         raise ValueError("no camera stored in the file; pass camera=PinholeCamera(...) or OrthographicCamera(...)")
-    return RangeImage(depth, fit_pinhole(points) if camera is None else camera, labels, points)
+    return RangeImage(depth, fit_pinhole(points) if camera is None else camera, labels, points, colors)
 
 
 def _write_npz(path, image: RangeImage, **_):
     extra = {k: v for k, v in image.camera.to_dict().items() if k != "model"}
-    extra.update({k: v for k, v in (("labels", image.labels), ("points", image.points_override)) if v is not None})
+    extra.update({k: v for k, v in (("labels", image.labels), ("points", image.points_override),
+                                    ("colors", image.colors)) if v is not None})
     with open(path, "wb") as f:
         np.savez_compressed(f, depth=image.depth, **extra)
 
@@ -246,9 +294,8 @@ def _write_npz(path, image: RangeImage, **_):
 def _write_png(path, image: RangeImage, depth_scale=1.0, **_):
     from PIL import Image
 
-    if not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
-    q = np.where(image.valid, np.round(np.nan_to_num(image.depth) / depth_scale), 0.0)
+    depth_scale = check_depth_scale(depth_scale)
+    q = np.where(image.valid, np.round(np.nan_to_num(image.depth) * depth_scale), 0.0)
     bad = image.valid & ((q < 1) | (q > 65535))
     if bad.any():
         raise ValueError(f"{int(bad.sum())} depths do not fit 1..65535 at depth_scale={depth_scale} "
@@ -261,7 +308,15 @@ def _mesh_points(path):
     import trimesh
 
     try:
-        obj = trimesh.load(path, process=False)
+        if path.suffix.lower() == ".obj":  # text: UTF-8, else Latin-1 (trimesh would need charset_normalizer)
+            raw = path.read_bytes()
+            try:
+                raw.decode("utf-8")
+            except UnicodeDecodeError:
+                raw = raw.decode("latin-1").encode("utf-8")
+            obj = trimesh.load(io.BytesIO(raw), file_type="obj", process=False)
+        else:
+            obj = trimesh.load(path, process=False)
     except Exception as e:  # trimesh raises many kinds of errors on bad input
         raise ValueError(f"could not read with trimesh ({type(e).__name__}: {e})") from None
     verts = []
@@ -355,20 +410,117 @@ def read_range_image(path, *, camera: Camera | None = None, depth_scale: float |
     - `.npz`: key `depth` `(H, W)`, optional `labels` `(H, W)` int, optional `points` `(H, W, 3)`
       (`points_override`), and the camera as scalar keys `fx, fy, cx, cy` (pinhole, pixels) or
       `pixel_size[, cx, cy]` (orthographic).
-    - `.png`: 16-bit depth times `depth_scale` (default 1.0; stored 0 = missing); `camera` is required.
+    - `.png`: 16-bit depth divided by `depth_scale` (default: stored units; stored 0 = missing); `camera`
+      is required. For a colour image and intrinsics JSON beside it use `read_rgbd`.
     - `.pcd`: an organised PCL cloud (HEIGHT > 1): depth = z, labels from a `label` field, and
       `points_override` = the `(H, W, 3)` xyz grid. Without `camera`, pinhole intrinsics are fitted
       (`fit_pinhole`). VIEWPOINT is ignored: points are used as stored.
 
-    `camera` overrides a stored one. `depth_scale` multiplies stored depths (and PCD / npz points), e.g.
-    0.001 for millimetres -> metres. Raises FileNotFoundError / ValueError naming the file.
+    `camera` overrides a stored one. `depth_scale` (Open3D's convention): stored units per metre, the
+    stored depths (and PCD / npz points) are divided by it, e.g. 1000 for millimetres -> metres; values
+    below 1 are refused (the old multiplying convention). Colours: a PCD `rgb` / `rgba` field or an npz
+    `colors` array become `RangeImage.colors`. Raises FileNotFoundError / ValueError naming the file.
     """
     if camera is not None and not isinstance(camera, (PinholeCamera, OrthographicCamera)):
         raise TypeError(f"camera must be a PinholeCamera or OrthographicCamera, got {type(camera).__name__}")
-    if depth_scale is not None and not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
+    depth_scale = check_depth_scale(depth_scale)
     path, fn = _handler(path, 0, "read_range_image")
     return _read(path, lambda p: _range_image(fn(p), camera, depth_scale))
+
+
+def read_intrinsics(path_or_dict) -> PinholeCamera:
+    """Pinhole intrinsics from a JSON file (or its dict) in any of the common forms:
+
+    - `{"fx", "fy", "cx", "cy"}` (pixels); `x_offset` / `y_offset` (or `ppx` / `ppy`) for cx / cy;
+    - Open3D's `PinholeCameraIntrinsic` JSON: `{"width", "height", "intrinsic_matrix": [9 numbers,
+      column-major]}`;
+    - a 3 x 3 matrix under `K`, `camera_matrix` or `intrinsic_matrix` (nested lists, row-major).
+
+    Optional `width` / `height` (or `img_width` / `img_height`) are checked against the depth image by
+    `read_rgbd`. Raises FileNotFoundError / ValueError naming the file.
+    """
+    return _intrinsics(path_or_dict)[0]
+
+
+def _intrinsics(path_or_dict):
+    """(PinholeCamera, (H, W) or None) of `read_intrinsics`."""
+    where = "intrinsics"
+    d = path_or_dict
+    if not isinstance(d, dict):
+        p = Path(os.fspath(d))
+        where = str(p)
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: no such file")
+        try:
+            d = json.loads(p.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ValueError(f"{p}: not valid JSON ({e})") from None
+        except OSError as e:
+            raise ValueError(f"{p}: cannot read ({e.strerror or e})") from None
+    if isinstance(d, dict) and isinstance(d.get("intrinsic"), dict):  # nested, as some tools write
+        d = d["intrinsic"]
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: intrinsics must be a JSON object, got {type(d).__name__}")
+    pick = lambda *keys: next((d[k] for k in keys if k in d), None)  # noqa: E731
+    fx, fy, cx, cy = pick("fx"), pick("fy"), pick("cx", "x_offset", "ppx"), pick("cy", "y_offset", "ppy")
+    matrix = pick("intrinsic_matrix", "K", "camera_matrix")
+    try:
+        if None in (fx, fy, cx, cy) and matrix is not None:
+            m = np.asarray(matrix, np.float64)
+            if m.shape == (9,):  # Open3D: flat, column-major
+                m = m.reshape(3, 3).T
+            if m.shape != (3, 3):
+                raise ValueError(f"intrinsic matrix must have 9 numbers, got shape {m.shape}")
+            fx, fy, cx, cy = m[0, 0], m[1, 1], m[0, 2], m[1, 2]
+        if None in (fx, fy, cx, cy):
+            raise ValueError(f"needs fx, fy, cx, cy (or an intrinsic_matrix); has {', '.join(sorted(d)) or 'nothing'}")
+        cam = PinholeCamera(float(fx), float(fy), float(cx), float(cy))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: bad intrinsics ({e})") from None
+    size = (pick("height", "img_height"), pick("width", "img_width"))
+    return cam, (tuple(int(v) for v in size) if None not in size else None)
+
+
+def read_rgbd(depth, color=None, *, intrinsics=None, camera: Camera | None = None,
+              depth_scale: float = 1000.0) -> RangeImage:
+    """An RGB-D frame -> `RangeImage` with `colors`: a 16-bit depth PNG, an optional colour image and the
+    pinhole intrinsics (a JSON file / dict for `read_intrinsics`, or `camera`).
+
+    `depth_scale` (Open3D's convention): stored depth units per metre, default 1000 (millimetres), depths
+    come out in metres; stored 0 = missing. `color`: any image PIL reads (RGB, RGBA, grey), the same size
+    as the depth. Raises FileNotFoundError / ValueError naming the file.
+    """
+    depth = Path(os.fspath(depth))
+    if depth.suffix.lower() != ".png":
+        raise ValueError(f"{depth}: an RGB-D depth image must be a 16-bit .png")
+    if (intrinsics is None) == (camera is None):
+        raise ValueError(f"{depth}: pass exactly one of intrinsics= (a JSON file or dict) and camera=")
+    cam, size = _intrinsics(intrinsics) if camera is None else (camera, None)
+    image = read_range_image(depth, camera=cam, depth_scale=depth_scale)
+    if size is not None and size != image.shape:
+        raise ValueError(f"{depth}: depth image is {image.shape[1]}x{image.shape[0]} (WxH) but the intrinsics "
+                         f"{intrinsics if not isinstance(intrinsics, dict) else ''} are for {size[1]}x{size[0]}")
+    if color is None:
+        return image
+    return with_colors(image, color)
+
+
+def with_colors(image: RangeImage, color) -> RangeImage:
+    """`image` with `colors` read from the image file `color` (same size as the depth)."""
+    color = Path(os.fspath(color))
+    if not color.is_file():
+        raise FileNotFoundError(f"{color}: no such file")
+    try:
+        with _open_image(color, "colour image") as im:
+            rgb = np.asarray(im.convert("RGB"))
+    except ValueError as e:
+        raise ValueError(f"{color}: {e}") from None
+    except OSError as e:
+        raise ValueError(f"{color}: {type(e).__name__}: {e}") from None
+    if rgb.shape[:2] != image.shape:
+        raise ValueError(f"{color}: colour image is {rgb.shape[1]}x{rgb.shape[0]} (WxH), the depth is "
+                         f"{image.shape[1]}x{image.shape[0]}")
+    return RangeImage(image.depth, image.camera, image.labels, image.points_override, rgb)
 
 
 def read_points(path, *, with_labels: bool = False):
@@ -387,14 +539,18 @@ def read_points(path, *, with_labels: bool = False):
 
 
 def write_range_image(path, image: RangeImage, *, data: str = "binary", depth_scale: float = 1.0) -> None:
-    """Write a RangeImage as `.npz` (depth, labels, camera, points_override), organised `.pcd` (x y z
-    float32 + `label` uint32 if labelled; `data="binary"` or `"ascii"`), or 16-bit `.png` storing
-    round(depth / depth_scale), 0 = missing (the camera and labels are not stored)."""
+    """Write a RangeImage as `.npz` (depth, labels, camera, points_override, colors), organised `.pcd`
+    (x y z float32 + `label` uint32 if labelled; `data="binary"` or `"ascii"`), or 16-bit `.png` storing
+    round(depth * depth_scale), 0 = missing (the camera, labels and colours are not stored); e.g.
+    `depth_scale=1000` for metres -> millimetres. Written atomically (a temporary file renamed)."""
     if not isinstance(image, RangeImage):
         raise TypeError(f"image must be a RangeImage, got {type(image).__name__}")
+    from .export import atomic_paths
+
     path, fn = _handler(path, 2, "write_range_image")
     try:
-        fn(path, image, data=data, depth_scale=depth_scale)
+        with atomic_paths(path) as (tmp,):
+            fn(tmp, image, data=data, depth_scale=depth_scale)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
 
@@ -405,4 +561,7 @@ def write_points(path, points) -> None:
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
         raise ValueError(f"{path}: points must be a numeric (N, 3) array, got {pts.dtype} of shape {pts.shape}")
-    fn(path, pts.astype(np.float64))
+    from .export import atomic_paths
+
+    with atomic_paths(path) as (tmp,):
+        fn(tmp, pts.astype(np.float64))

@@ -220,7 +220,7 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
     """The paper's figure sequence for one segmentation, as a `matplotlib.figure.Figure`.
 
     Range images (a `RangeImage`): (a) the range image, (b) the back-projected points (x, y, z) coloured
-    by depth, (c) the models after the first selection, (d) midway, (e) the final models, all three ray
+    by depth (by `image.colors` when the image has colours: RGB-D frames, coloured PCDs), (c) the models after the first selection, (d) midway, (e) the final models, all three ray
     cast with the image's camera over the data (grey), and (f) the label image (as `labels.png`).
     Point clouds (an `(P, 3)` array): the same in 3-D axes, (a) the points coloured by depth and (f) the
     points coloured by label. Final parts use `label_colors`; earlier models take the colour of the
@@ -245,10 +245,13 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
         ax.set_axis_off()
         ax = fig.add_subplot(spec[0, 1], projection="3d")
         pts = image.points
-        shown = _scatter(ax, pts.reshape(-1, 3), pts.reshape(-1, 3)[:, 2], cmap=cmap, max_points=max_points)
+        if image.colors is not None:   # an RGB-D frame or a coloured PCD: the points in their own colours
+            shown = _scatter(ax, pts.reshape(-1, 3), image.colors.reshape(-1, 3) / 255.0, max_points=max_points)
+        else:
+            shown = _scatter(ax, pts.reshape(-1, 3), pts.reshape(-1, 3)[:, 2], cmap=cmap, max_points=max_points)
         _equal_3d(ax, shown)
         _style_3d(ax)
-        ax.set_title("(b) points (x, y, z)")
+        ax.set_title("(b) points (x, y, z)" + (", in colour" if image.colors is not None else ""))
         final_labels = np.asarray(segmentation.labels)
         for k, (name, models) in enumerate(panels):
             ax = fig.add_subplot(spec[(2 + k) // 3, (2 + k) % 3])

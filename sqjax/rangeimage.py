@@ -96,13 +96,15 @@ class RangeImage:
     """A depth image `(H, W)` with its camera, and optionally ground-truth labels `(H, W)` int.
 
     `points` `(H, W, 3)` are in the camera frame (NaN where missing); `valid` `(H, W)` marks finite,
-    non-zero depths. Labels: 0 = none / unknown, > 0 = a part.
+    non-zero depths. Labels: 0 = none / unknown, > 0 = a part. `colors`: optional `(H, W, 3)` uint8
+    RGB registered to the depth (an RGB-D frame's colour image, a PCD's rgb / rgba field); figures use it.
     """
 
     depth: np.ndarray
     camera: Camera
     labels: np.ndarray | None = None
     points_override: np.ndarray | None = None  # organised clouds that are not an exact projection
+    colors: np.ndarray | None = None
 
     def __post_init__(self):
         depth = np.asarray(self.depth)
@@ -129,6 +131,18 @@ class RangeImage:
             if pts.shape != depth.shape + (3,):
                 raise ValueError(f"RangeImage: points shape {pts.shape} != {depth.shape + (3,)}")
             object.__setattr__(self, "points_override", pts)
+        if self.colors is not None:
+            rgb = np.asarray(self.colors)
+            if rgb.ndim == 3 and rgb.shape[2] == 4:
+                rgb = rgb[..., :3]
+            if rgb.shape != depth.shape + (3,):
+                raise ValueError(f"RangeImage: colors shape {rgb.shape} != {depth.shape + (3,)}")
+            if rgb.dtype != np.uint8:
+                if not np.issubdtype(rgb.dtype, np.number) or not np.isfinite(rgb).all() or \
+                        rgb.min() < 0 or rgb.max() > 255:
+                    raise ValueError(f"RangeImage: colors must be uint8 RGB (0..255), got {rgb.dtype}")
+                rgb = np.round(rgb).astype(np.uint8)
+            object.__setattr__(self, "colors", rgb)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -156,7 +170,8 @@ class RangeImage:
         sl = (slice(r0, r1), slice(c0, c1))
         return RangeImage(self.depth[sl], self.camera.scaled(1, r0, c0),
                           None if self.labels is None else self.labels[sl],
-                          None if self.points_override is None else self.points_override[sl])
+                          None if self.points_override is None else self.points_override[sl],
+                          None if self.colors is None else self.colors[sl])
 
     def subsample(self, step: int) -> RangeImage:
         """Every `step`-th row and column (the paper subsampled its dense images), camera rescaled."""
@@ -165,4 +180,5 @@ class RangeImage:
         sl = (slice(0, None, step), slice(0, None, step))
         return RangeImage(self.depth[sl], self.camera.scaled(step),
                           None if self.labels is None else self.labels[sl],
-                          None if self.points_override is None else self.points_override[sl])
+                          None if self.points_override is None else self.points_override[sl],
+                          None if self.colors is None else self.colors[sl])

@@ -6,8 +6,10 @@ Commands run in-process through `sqjax.cli.main` (the JIT cache is shared betwee
 
 from __future__ import annotations
 
+import importlib
 import io
 import json
+import os
 import subprocess
 import sys
 
@@ -22,6 +24,8 @@ from sqjax.formats import read_range_image, write_points, write_range_image
 from sqjax.segment import segment
 
 SHAPE = (60, 80)
+# in-process runs must not write into the user's compilation cache (tests/test_startup.py covers it)
+os.environ.setdefault("SQJAX_NO_CACHE", "1")
 
 
 def run(capsys, *argv):
@@ -150,10 +154,10 @@ def test_segment_outputs(segmented, scene):
 def test_segment_png_with_camera_subsample_and_evaluate(capsys, scene, tmp_path):
     image = read_range_image(scene)
     png = tmp_path / "depth.png"
-    write_range_image(png, image, depth_scale=1e-3)
+    write_range_image(png, image, depth_scale=1000)
     cam = ",".join(f"{v:g}" for v in (image.camera.fx, image.camera.fy, image.camera.cx, image.camera.cy))
     out = tmp_path / "res"
-    code, stdout, err = run(capsys, "segment", png, "--camera", cam, "--depth-scale", "0.001", "--subsample", "2",
+    code, stdout, err = run(capsys, "segment", png, "--camera", cam, "--depth-scale", "1000", "--subsample", "2",
                             "--no-figure", "--out", out, "-o", "max_steps=30")
     assert code == 0, err
     assert err == ""                       # no progress bar when stderr is not a terminal
@@ -290,9 +294,179 @@ class _Terminal(io.StringIO):
 def test_progress_bar_only_on_a_terminal():
     tty, pipe = _Terminal(), io.StringIO()
     for stream in (tty, pipe):
-        bar = _Progress(10, stream)
+        bar = _Progress(10, stream, rounds=2)
         bar.start("x")
         bar(5, 3, 7)
         bar.close()
-    assert "[############............] growth step 5/10, 3 of 7 models growing" in tty.getvalue()
+    text = tty.getvalue()
+    assert "growth step 5/10, 3 of 7 models growing" in text and "round 1/2" in text
+    assert "5/22" in text and "<" in text          # a total (2 rounds x (10 steps + final stage)), an ETA
     assert pipe.getvalue() == ""
+
+
+def test_progress_total_shrinks_to_the_truth():
+    bar = _Progress(10, _Terminal(), rounds=3)
+    bar.start("x")
+    assert bar.total == 33
+    for step in range(1, 5):            # round 1 stops after 4 steps: models done
+        bar(step, 0 if step == 4 else 2, 5)
+    assert bar.in_final and bar.total == 4 + 20 + 3
+    bar(5, 1, 6)                        # growth again: round 2 (reseeded)
+    assert bar.round == 1 and bar.bar.n == 6 and bar.total == 4 + 10 + 10 + 3
+    bar(6, 0, 6, stage="merge")
+    assert bar.total == 4 + 2 + 10 + 3
+    bar(6, 0, 6, stage="select", round=2, total=9)   # what segment() may pass: used as given
+    assert bar.bar.total == 9
+    bar.close()
+
+
+def test_progress_sees_a_reseed_round_by_its_new_models():
+    bar = _Progress(10, _Terminal(), rounds=2)
+    bar.start("x")
+    bar(1, 4, 9)
+    bar(2, 3, 5)        # selection dropped models, and then stopped them all without a call with 0 active
+    bar(3, 2, 8)        # reseeded models joined: round 2
+    assert bar.round == 1 and bar.round_start == 2 and bar.total == 2 + 10 + 2
+    bar.close()
+
+
+# ----------------------------------------------------------------------------------------------------
+# output safety and early checks (issue 15 item 9): fail before any work, name the file
+
+
+@pytest.fixture
+def no_segment(monkeypatch):
+    """segment() must not run: the checks come first."""
+    def refuse(*a, **k):
+        raise AssertionError("segment() ran before the check")
+
+    monkeypatch.setattr(importlib.import_module("sqjax.segment"), "segment", refuse)
+
+
+def test_unusable_out_fails_before_segmenting(capsys, scene, tmp_path, no_segment):
+    (tmp_path / "file").write_text("x")
+    for out in (tmp_path / "file", "/proc/sqjax-test/out"):
+        code, _, err = run(capsys, "segment", scene, "--out", out)
+        assert_one_line_error(code, err)
+        assert str(out) in err
+
+
+def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no_segment):
+    import dataclasses
+
+    segment_module = importlib.import_module("sqjax.segment")
+
+    @dataclasses.dataclass(frozen=True)
+    class Checked(segment_module.SegmentOptions):
+        def __post_init__(self):
+            if self.noise is not None and self.noise < 0:
+                raise ValueError(f"SegmentOptions: noise must be >= 0, got {self.noise}")
+
+    monkeypatch.setattr(segment_module, "SegmentOptions", Checked)
+    code, _, err = run(capsys, "segment", scene, "-o", "noise=-1")
+    assert_one_line_error(code, err)
+    assert code == 2 and "noise" in err
+    @dataclasses.dataclass(frozen=True)
+    class Typed(segment_module.SegmentOptions):
+        def __post_init__(self):
+            raise TypeError("SegmentOptions: window must be an int")
+
+    monkeypatch.setattr(segment_module, "SegmentOptions", Typed)
+    code, _, err = run(capsys, "segment", scene, "-o", "window=4")
+    assert_one_line_error(code, err)
+    assert code == 2 and "internal" not in err
+
+
+@pytest.mark.parametrize("option", ["noise=-1", "threshold=inf", "window=-4", "keep_fraction=nan"])
+def test_negative_or_infinite_option_values(capsys, scene, no_segment, option):
+    code, _, err = run(capsys, "segment", scene, "-o", option)
+    assert_one_line_error(code, err)
+    assert code == 2 and option.split("=")[0] in err
+
+
+def test_render_json_unwritable_leaves_no_npz(capsys, tmp_path):
+    code, _, err = run(capsys, "render", "sphere_cylinder", "--shape", "16,16", "--out", tmp_path / "x.npz",
+                       "--json", "/proc/sqjax-test.json")
+    assert_one_line_error(code, err)
+    assert "/proc/sqjax-test.json" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("noise", ["inf", "nan", "-1"])
+def test_render_refuses_bad_noise(capsys, tmp_path, noise):
+    code, _, err = run(capsys, "render", "sphere_cylinder", "--out", tmp_path / "x.npz", f"--noise={noise}")
+    assert code == 2 and "noise" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_evaluate_models_json_not_an_object(capsys, scene, tmp_path):
+    np.save(tmp_path / "labels.npy", read_range_image(scene).labels)
+    (tmp_path / "models.json").write_text("[1, 2, 3]")
+    code, _, err = run(capsys, "evaluate", tmp_path, scene)
+    assert_one_line_error(code, err)
+    assert code == 2 and "models.json" in err and "internal" not in err
+    (tmp_path / "models.json").write_text('{"settings": {"subsample": "two"}}')
+    code, _, err = run(capsys, "evaluate", tmp_path, scene)
+    assert_one_line_error(code, err)
+    assert "subsample" in err
+
+
+def test_old_depth_scale_convention_gets_a_hint(capsys, tmp_path):
+    code, _, err = run(capsys, "segment", tmp_path / "d.png", "--camera", "1,1,0,0", "--depth-scale", "0.001")
+    assert_one_line_error(code, err)
+    assert "1000" in err and "Open3D" in err
+
+
+def test_fit_json_unwritable_fails_before_fitting(capsys, tmp_path, monkeypatch):
+    monkeypatch.setattr(importlib.import_module("sqjax.fitting"), "fit", lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")))
+    pts = tmp_path / "p.xyz"
+    write_points(pts, np.random.default_rng(0).normal(size=(50, 3)))
+    code, _, err = run(capsys, "fit", pts, "--json", "/proc/sqjax-test.json")
+    assert_one_line_error(code, err)
+    assert "/proc/sqjax-test.json" in err
+
+
+def test_render_over_a_symlink_replaces_the_link(capsys, tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    (tmp_path / "x.npz").symlink_to(victim)
+    code, _, err = run(capsys, "render", "sphere_cylinder", "--shape", "16,16", "--out", tmp_path / "x.npz")
+    assert code == 0, err
+    assert victim.read_text() == "keep me" and not (tmp_path / "x.npz").is_symlink()
+    assert read_range_image(tmp_path / "x.npz").shape == (16, 16)
+
+
+def test_demo_without_figure_does_not_point_at_one(capsys, tmp_path):
+    code, stdout, err = run(capsys, "demo", "--out", tmp_path / "d", "--shape", "40,56", "--no-figure")
+    assert code == 0, err
+    assert "figure.png" not in stdout and not (tmp_path / "d" / "figure.png").exists()
+
+
+# ----------------------------------------------------------------------------------------------------
+# RGB-D on the command line
+
+
+def test_segment_rgbd_frame(capsys, scene, tmp_path):
+    image = read_range_image(scene)
+    write_range_image(tmp_path / "depth.png", image, depth_scale=1000)
+    rgb = np.zeros(image.shape + (3,), np.uint8)
+    rgb[..., 0] = 200
+    Image.fromarray(rgb).save(tmp_path / "rgb.png")
+    c = image.camera
+    (tmp_path / "cam.json").write_text(json.dumps({"fx": c.fx, "fy": c.fy, "x_offset": c.cx, "y_offset": c.cy}))
+    out = tmp_path / "res"
+    code, stdout, err = run(capsys, "segment", tmp_path / "depth.png", "--intrinsics", tmp_path / "cam.json",
+                            "--color", tmp_path / "rgb.png", "--depth-scale", "1000", "--out", out)
+    assert code == 0, err
+    doc = json.loads((out / "models.json").read_text())
+    assert doc["settings"]["camera_source"] == "--intrinsics" and doc["camera"]["fx"] == pytest.approx(c.fx)
+    assert len(doc["parts"]) == 3 and (out / "figure.png").exists() and (out / "labels_id.png").exists()
+
+
+def test_errors_name_the_input(capsys, tmp_path):
+    few = _few_points(tmp_path)
+    for cmd in ("segment", "fit"):
+        code, _, err = run(capsys, cmd, few, *(["--out", tmp_path / "o"] if cmd == "segment" else []))
+        assert_one_line_error(code, err)
+        assert str(few) in err and "[Errno" not in err
+    assert not (tmp_path / "o").exists()    # the folder made for the results is removed again

@@ -156,25 +156,25 @@ def test_pcd_round_trip(tmp_path, data):
 def test_pcd_without_labels_and_scale(tmp_path):
     img = make_image(labels=False)
     write_range_image(tmp_path / "a.pcd", img)
-    back = read_range_image(tmp_path / "a.pcd", depth_scale=1000.0)
+    back = read_range_image(tmp_path / "a.pcd", depth_scale=1000.0)   # Open3D: units per metre, divides
     assert back.labels is None
-    np.testing.assert_allclose(back.depth, img.depth * 1000, rtol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(back.depth, img.depth / 1000, rtol=1e-6, equal_nan=True)
     assert back.camera.fx == pytest.approx(CAM.fx, abs=1e-3)  # scaling xyz keeps the intrinsics
 
 
 def test_png_round_trip_with_scale(tmp_path):
     img = make_image()
-    write_range_image(tmp_path / "d.png", img, depth_scale=0.001)
-    back = read_range_image(tmp_path / "d.png", camera=CAM, depth_scale=0.001)
+    write_range_image(tmp_path / "d.png", img, depth_scale=1000)
+    back = read_range_image(tmp_path / "d.png", camera=CAM, depth_scale=1000)
     assert np.array_equal(back.valid, img.valid) and back.labels is None
     assert np.nanmax(np.abs(back.depth - img.depth)) <= 0.0005 + 1e-6
-    raw = read_range_image(tmp_path / "d.png", camera=CAM)  # default scale 1: stored integers
-    assert np.array_equal(raw.depth[img.valid], np.round(img.depth[img.valid] / 0.001))
+    raw = read_range_image(tmp_path / "d.png", camera=CAM)  # default: stored integers
+    assert np.array_equal(raw.depth[img.valid], np.round(img.depth[img.valid] * 1000))
 
 
 def test_png_depth_out_of_range(tmp_path):
     with pytest.raises(ValueError, match=r"d\.png.*do not fit"):
-        write_range_image(tmp_path / "d.png", make_image(), depth_scale=1e-5)
+        write_range_image(tmp_path / "d.png", make_image(), depth_scale=1e5)
 
 
 @pytest.mark.parametrize("ext", [".ply", ".xyz", ".txt", ".npy"])
@@ -314,12 +314,12 @@ def test_uois_pickled_npy(tmp_path):
     p = json.loads((folder / "camera_params.json").read_text())
     cam = dict(fx=p["fx"], fy=p["fy"], cx=p["x_offset"], cy=p["y_offset"])
     np.savez(tmp_path / "u.npz", depth=depth_mm, **cam)
-    img = read_range_image(tmp_path / "u.npz", depth_scale=0.001)
+    img = read_range_image(tmp_path / "u.npz", depth_scale=1000)
     assert img.camera == PinholeCamera(**cam) and img.shape == (480, 640)
     assert img.valid.sum() == (depth_mm > 0).sum() and 0.85 < img.valid.mean() < 0.97
     assert 0.2 < np.nanmedian(img.depth) < 3.0  # metres
-    write_range_image(tmp_path / "u.png", img, depth_scale=0.001)
-    back = read_range_image(tmp_path / "u.png", camera=img.camera, depth_scale=0.001)
+    write_range_image(tmp_path / "u.png", img, depth_scale=1000)
+    back = read_range_image(tmp_path / "u.png", camera=img.camera, depth_scale=1000)
     assert same(back.depth, img.depth)
 
 
