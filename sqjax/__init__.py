@@ -21,7 +21,7 @@ _NAMES = {
     "write_points": "formats", "write_range_image": "formats",
     "OrthographicCamera": "rangeimage", "PinholeCamera": "rangeimage", "RangeImage": "rangeimage",
     "figure_sequence": "plot",
-    "paper_scene": "scenes", "random_scene": "scenes", "render": "scenes",
+    "paper_scene": "scenes", "random_scene": "scenes", "multipart_scene": "scenes", "render": "scenes",
     "Segmentation": "segment", "SegmentOptions": "segment", "segment": "segment",
     "SelectionWeights": "selection",
     "Superquadric": "superquadric", "contains": "superquadric", "distance": "superquadric",

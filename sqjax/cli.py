@@ -373,7 +373,7 @@ def _parts_table(seg) -> str:
     for i, p in enumerate(seg.parts):
         sq = p.superquadric
         a, e, t = (np.asarray(v, float) for v in (sq.size, sq.epsilon, sq.translation))
-        rms = np.sqrt(p.error / p.num_points) if p.num_points else float("nan")
+        rms = np.sqrt(p.error / p.num_explained) if p.num_explained else float("nan")
         rows.append(f"{i + 1:>4} {p.num_points:>7} {_fmt(a[0])} {_fmt(a[1])} {_fmt(a[2])} {_fmt(e[0], 5, 2)} "
                     f"{_fmt(e[1], 5, 2)} {_fmt(t[0], 8)} {_fmt(t[1], 8)} {_fmt(t[2], 8)} {rms:9.2e}")
     return "\n".join(rows)
@@ -434,11 +434,13 @@ def _segment_file(args, path, options, out) -> int:
     data, kind = load_input(path, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale,
                             color=args.color, intrinsics=args.intrinsics)
     input_shape = data.shape if kind == "range_image" else (len(data),)
-    if args.subsample > 1:
-        data = data.subsample(args.subsample) if kind == "range_image" else data[:: args.subsample]
+    if kind == "range_image":   # segmented at a working resolution, labelled at the input's
+        options = dataclasses.replace(options, subsample=args.subsample)
+    elif args.subsample is not None and args.subsample > 1:
+        data = data[:: args.subsample]
     camera_source = "--intrinsics" if args.intrinsics is not None else "--camera" if args.camera is not None \
         else "--ortho" if args.ortho is not None else ("file" if kind == "range_image" else None)
-    settings = {"subsample": args.subsample, "depth_scale": args.depth_scale, "depth_scale_convention":
+    settings = {"subsample": 1 if kind == "range_image" else (args.subsample or 1), "depth_scale": args.depth_scale, "depth_scale_convention":
                 "stored units per metre (divides)", "noise": args.noise, "camera_source": camera_source,
                 "color": None if args.color is None else str(args.color), "options": dataclasses.asdict(options)}
     _segment_and_write(data, kind, out, input_path=path, input_shape=input_shape, settings=settings,
@@ -687,8 +689,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--depth-scale", type=_depth_scale_arg, metavar="S",
                    help="stored depth units per metre, divides (Open3D's convention): 1000 for millimetres; "
                    "default: use the stored values")
-    s.add_argument("--subsample", type=_positive(int), default=1, metavar="STEP",
-                   help="use every STEP-th row and column (every STEP-th point of a cloud); default 1")
+    s.add_argument("--subsample", type=_positive(int), default=None, metavar="STEP",
+                   help="range images: segment at every STEP-th row and column and label every input pixel "
+                   "with the final models (default: the step that brings the image near 160 x 120; 1 = the "
+                   "slow exact path); clouds: use every STEP-th point (default 1)")
     s.add_argument("--noise", type=_positive(float), metavar="SIGMA",
                    help="sensor noise std in depth units (default: estimated from the data)")
     s.add_argument("-o", "--option", action="append", metavar="KEY=VALUE",

@@ -34,9 +34,11 @@ folder back.
          "euler_zyz": [phi, theta, psi],            # rad, R = Rz(phi) Ry(theta) Rz(psi) (the paper's angles)
          "translation": [x, y, z],                  # model centre, camera frame, data units
          "taper": [Kx, Ky], "bend": [k, alpha],     # zero unless deformations were fitted
-         "num_points": int,                         # pixels / points in the part's region
+         "num_points": int,                         # pixels / points labelled with this part (> 0)
+         "num_explained": int,                      # pixels / points its model explains (its region,
+                                                    # within tau; regions of parts may overlap, labels not)
          "error": float,                            # sum of squared eq. 10 distances over the region
-         "rms_distance": float}                     # sqrt(error / num_points)
+         "rms_distance": float}                     # sqrt(error / num_explained)
       ]
     }
 """
@@ -251,8 +253,9 @@ def segmentation_dict(seg, image=None, *, input_path=None, input_shape=None, set
     colors = label_colors(len(seg.parts))
     parts = []
     for i, (p, c) in enumerate(zip(seg.parts, colors)):
-        n = int(p.num_points)
-        parts.append({"label": i + 1, "color": c.tolist(), **superquadric_dict(p.superquadric), "num_points": n,
+        n = int(p.num_explained)
+        parts.append({"label": i + 1, "color": c.tolist(), **superquadric_dict(p.superquadric),
+                      "num_points": int(p.num_points), "num_explained": n,
                       "error": float(p.error), "rms_distance": float(np.sqrt(p.error / n)) if n else None})
     is_image = image is not None
     labels = np.asarray(seg.labels)
