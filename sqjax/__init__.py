@@ -6,6 +6,7 @@ from . import evaluate as evaluate
 from . import plot as plot
 from . import rotation as rotation
 from . import scenes as scenes
+from .dataset import segment_many as segment_many
 from .evaluate import HooverScore as HooverScore
 from .evaluate import explained_fraction as explained_fraction
 from .evaluate import hoover as hoover
