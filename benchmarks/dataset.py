@@ -83,6 +83,9 @@ def run_mode(mode, files, args, workdir):
             with ThreadPoolExecutor(args.threads) as pool:
                 out = list(pool.map(one, files))
             extra["threads"] = args.threads
+            # segment()'s compile clock is process-wide: with two scenes at once each counts the other's
+            # compiles too, so the per-scene compile / run split (and wall/run) mean nothing here
+            extra["note"] = "per-scene compile/run split invalid with threads (process-wide compile clock)"
         rows = [r for r, _ in out]
         segs = {r["name"]: s for r, s in out if s is not None}
     else:
@@ -184,6 +187,8 @@ def main(argv=None):
         print(f"{m:8s} {r['done']:5d} {len(r['failed']):6d} {r['wall_seconds']:8.1f} {r['sum_run_seconds']:9.1f} "
               f"{r['sum_compile_seconds']:9.1f} {r['wall_over_run']:8.2f} {r['scenes_per_minute']:10.2f} "
               f"{r['correct']:4d}/{r['truth_parts']:<4d}")
+        if r.get("note"):
+            print(f"         note: {r['note']}")
         for f in r["failed"]:
             print(f"         failed: {f[:150]}")
     for c in results["identical"]:
