@@ -15,7 +15,7 @@ import pytest
 
 import sqjax
 from sqjax.cli import main
-from sqjax.dataset import MARKER, expand_inputs, segment_many
+from sqjax.dataset import MARKER, _configure_jax, expand_inputs, segment_many
 from sqjax.formats import write_range_image
 
 SHAPE = (60, 80)
@@ -23,11 +23,14 @@ SHAPE = (60, 80)
 
 @pytest.fixture(scope="module")
 def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("jax-cache")
+    """JAX's persistent compilation cache, set before this process compiles anything."""
+    path = tmp_path_factory.mktemp("jax-cache")
+    _configure_jax(str(path))
+    return path
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory):
+def scenes(cache_dir, tmp_path_factory):
     """Folder with two labelled scenes and one corrupt .npz; returns (folder, [paths])."""
     d = tmp_path_factory.mktemp("scenes")
     paths = []
@@ -72,6 +75,10 @@ def test_corrupt_file_reported_others_finished(serial, scenes):
         assert (r.row["truth_parts"], r.row["correct"]) == (score.n_truth, score.correct)
     # compile paid once: the second scene compiles (much) less than the first
     assert res["scene1"].row["compile_seconds"] < res["scene0"].row["compile_seconds"]
+
+
+def test_compilation_cache_filled(serial, cache_dir):
+    assert len(list(cache_dir.iterdir())) > 10     # what the Dask workers will load instead of compiling
 
 
 def test_summary_files(serial):
@@ -144,13 +151,13 @@ def _params(seg):
 
 
 def test_dask_equals_serial(serial, scenes, cache_dir, tmp_path):
-    distributed = pytest.importorskip("distributed", reason="Dask distributed is not installed (pip install 'sqjax[dask]')")
+    pytest.importorskip("distributed", reason="Dask distributed is not installed (pip install 'sqjax[dask]')")
     _, paths = scenes
     image = sqjax.read_range_image(paths[2])
     inputs = [*paths, ("scene1_array", image)]                 # paths and an array
-    with distributed.LocalCluster(n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        results = segment_many(inputs, tmp_path / "dask", scheduler=client, cache_dir=cache_dir, progress=False)
+    # a LocalCluster of two single-threaded worker processes, started and closed by segment_many; the
+    # workers load the kernels this process compiled from the persistent cache
+    results = segment_many(inputs, tmp_path / "dask", workers=2, cache_dir=cache_dir, progress=False)
     ref = by_name(serial[1])
     res = by_name(results)
     assert res["corrupt"].status == "failed" and "corrupt.npz" in res["corrupt"].error
