@@ -23,6 +23,7 @@ _NAMES = {
     "figure_sequence": "plot",
     "paper_scene": "scenes", "random_scene": "scenes", "multipart_scene": "scenes", "render": "scenes",
     "Segmentation": "segment", "SegmentOptions": "segment", "segment": "segment",
+    "segment_many": "dataset",
     "SelectionWeights": "selection",
     "Superquadric": "superquadric", "contains": "superquadric", "distance": "superquadric",
     "inside_outside": "superquadric", "radial_distance": "superquadric", "residual": "superquadric",

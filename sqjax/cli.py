@@ -417,7 +417,11 @@ def _check_out_dir(out: Path) -> bool:
 
 
 def cmd_segment(args) -> int:
-    path = Path(args.input)
+    from .dataset import cli_segment_many, wants_many
+
+    if wants_many(args):  # several inputs, a folder, a glob or a cluster: sqjax.dataset
+        return cli_segment_many(args)
+    path = Path(args.input[0])
     options = _segment_options(args.option, args.noise)          # bad options: before any work
     out = Path(args.out) if args.out else Path(f"sqjax-{path.stem}")
     created = _check_out_dir(out)                                  # unusable --out: before any work
@@ -676,7 +680,10 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Segment INPUT into superquadric parts (recover-and-select) and write "
                        "models.json, labels.npy, labels.png, labels_id.png (clouds: labels.ply), parts.glb (Y-up), parts.ply and "
                        "figure.png into DIR. Inputs: " + _SUPPORTED + ".")
-    s.add_argument("input", metavar="INPUT", help="range image or point cloud file")
+    s.add_argument("input", metavar="INPUT", nargs="+", help="range image or point cloud file; several files, a "
+                   "folder or a glob: one output folder each under DIR, summary.csv / summary.json (sqjax.dataset)")
+    s.add_argument("--workers", type=_positive(int), metavar="N", help="several inputs: a local Dask cluster of N")
+    s.add_argument("--scheduler", metavar="ADDRESS", help="several inputs: run on this Dask scheduler")
     cam = s.add_mutually_exclusive_group()
     cam.add_argument("--camera", type=_camera_arg, metavar="fx,fy,cx,cy",
                      help="pinhole intrinsics in pixels (needed for .npy/.png depth; overrides a stored camera)")

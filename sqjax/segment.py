@@ -280,7 +280,9 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     - `data`: a `RangeImage` (pixels adjacent on the image grid) or an `(P, 3)` array of points
       (adjacency = `k` nearest neighbours); NaN rows / missing pixels are ignored.
     - `options`: a `SegmentOptions`; keyword arguments build one (`noise=`, `window=`, ...).
-    - `progress`: optional callable `progress(step, n_active, n_models)` called after each growth step.
+    - `progress`: optional callable `progress(step, n_active, n_models, *, stage, round)` called after
+      each growth step (`stage="grow"`), before each round's merge and final selection ("merge") and
+      before the labels ("finish"); `round` counts from 0 (the first pass; then each reseed round).
 
     **Returns:** a `Segmentation` (parts, label image, history, timings).
     """
@@ -315,7 +317,11 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         models.take(m)
         history.append(models.theta.copy())
 
-    def recover_and_select(models, budget):
+    def report(stage, round_):
+        if progress is not None:
+            progress(stats["growth_steps"], int(models.active.sum()), len(models.theta), stage=stage, round=round_)
+
+    def recover_and_select(models, budget, round_):
         """Growth of the active models interleaved with selection, until all stop or `budget` steps."""
         step = 0
         while models.active.any() and step < budget:
@@ -324,7 +330,8 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
                 step += 1
                 stats["growth_steps"] += 1
                 if progress is not None:
-                    progress(stats["growth_steps"], int(models.active.sum()), len(models.theta))
+                    progress(stats["growth_steps"], int(models.active.sum()), len(models.theta), stage="grow",
+                             round=round_)
                 if not models.active.any() or step >= budget:
                     break
             select_(models)
@@ -338,9 +345,10 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             stats["pruned"] = stats.get("pruned", 0) + _prune_redundant(models, opts.min_exclusive)
         return models
 
-    recover_and_select(models, opts.max_steps)
+    recover_and_select(models, opts.max_steps, 0)
+    report("merge", 0)
     models = final_selection(models)
-    for _ in range(opts.reseed):
+    for round_ in range(1, opts.reseed + 1):
         # Another chance for what the final models leave unexplained: seeds lying there grow beside
         # the (stopped) selected models and compete with them in the selections.
         free = ~models.regions.any(0)
@@ -355,8 +363,10 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         stats["reseeded"] += len(new.theta)
         models.active[:] = False
         models = models.concat(new)
-        recover_and_select(models, opts.max_steps)
+        recover_and_select(models, opts.max_steps, round_)
+        report("merge", round_)
         models = final_selection(models)
+    report("finish", opts.reseed)
     parts, labels = _finish(run, models)
     if full is not None:
         parts, labels = _label_full(full, step, run, models, labels)
