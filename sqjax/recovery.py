@@ -116,6 +116,12 @@ def noise_exponent(depth: np.ndarray, sigma: np.ndarray, bins: int = 5) -> float
     return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, 2.0))
 
 
+def _plane_residual(q: np.ndarray) -> float:
+    """Std of points q (n, 3) about their least-squares plane (unbiased for the 3 fitted dof)."""
+    n = q.shape[0]
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(q.T))[0], 0.0) * (n - 1) / max(n - 3, 1)))
+
+
 def noise_scale(points: np.ndarray, k: float, z_ref: float) -> np.ndarray:
     """(z / z_ref)^k of camera-frame points (P, 3): their noise in units of the noise at depth z_ref."""
     return (np.abs(points[:, 2]) / z_ref) ** k
@@ -508,9 +514,11 @@ def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
         sigma = np.array([np.median(d[i]) / 0.6745 for i in fitted])
         if fitted.size:
             if run.dom.edges is not None and opts.noise_exponent is None and run.scale is None:
-                # images: how the seeds' residuals grow with depth gives the sensor's noise model
+                # images: how the seeds' residuals grow with depth gives the sensor's noise model; the
+                # residual of each window's plane (the least principal axis; the model's eq. 10
+                # residual has a floor of its own fitting error)
                 depth = np.array([np.median(np.abs(run.dom.points[seeds[i], 2])) for i in fitted])
-                k = noise_exponent(depth, sigma)
+                k = noise_exponent(depth, np.array([_plane_residual(run.dom.points[seeds[i]]) for i in fitted]))
                 if k > 0:
                     run.set_noise_model(k, float(np.median(np.abs(run.dom.points[:, 2]))))
                     sigma = sigma / (depth / run.dom.noise_model[1]) ** k
