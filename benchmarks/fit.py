@@ -379,7 +379,7 @@ def main():
               f"IoU median {srow['iou_median']:.3f}  gross {srow['gross_failures']:.0%}", flush=True)
         for dtype in args.dtypes:
             for mode in ("multistart", "single"):
-                options = FitOptions(multistart=mode == "multistart", robust=True)   # fit()'s default
+                options = FitOptions(multistart=mode == "multistart", robust=False)   # fit()'s default
                 for k in args.ks:
                     first, steady, out = time_sqjax(pts[:k], options, dtype, args.seconds)
                     scores = iou(truth[:k], out.superquadric)

@@ -37,7 +37,7 @@ def outlier_batch():
     truth = [p[0] for p in problems]
     clean = np.stack([p[1] for p in problems])
     dirty, idx = with_outliers(clean, 0.10, seed=3)
-    return truth, clean, dirty, idx, fit(dirty), fit(dirty, robust=False)
+    return truth, clean, dirty, idx, fit(dirty, robust=True), fit(dirty)
 
 
 def test_robust_fit_survives_ten_percent_outliers(outlier_batch):
@@ -217,7 +217,7 @@ def test_status_describe():
 def test_clean_fit_is_ok_and_converged():
     rng = np.random.default_rng(9)
     _, pts = random_problem(rng, n=200)
-    r = fit(pts)
+    r = fit(pts, robust=True)
     assert Status.describe(r.status) in ("OK", "BOUND_ACTIVE"), Status.describe(r.status)
     assert bool(r.converged)
     assert float(np.mean(np.asarray(r.weight) > 0.5)) > 0.95
