@@ -8,12 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from sqjax import Superquadric, sample_surface
-from sqjax import fitting
-from sqjax.fitting import FitOptions, Status, fit
-
 from test_fitting import params, random_problem, volume_iou
+
+from sqjax import Superquadric, fitting
+from sqjax.fitting import FitOptions, Status, fit
 
 FAST = dict(max_steps=8, multistart=False)   # one start: small kernels for the tests of plumbing
 
