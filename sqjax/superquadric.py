@@ -29,6 +29,36 @@ def _log_cap(dtype):
     return 20.0 if jnp.dtype(dtype) == jnp.float32 else 60.0
 
 
+def _check_fields(**fields):
+    """Host-side checks of `Superquadric.create`'s concrete arguments; a ValueError names the field."""
+    def concrete(v):
+        return v is not None and not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(v))
+
+    vals = {k: np.asarray(v, np.float64) for k, v in fields.items() if concrete(v)}
+    last = {"size": 3, "epsilon": 2, "euler": 3, "translation": 3, "taper": 2, "bend": 2}
+    for name, v in vals.items():
+        if name in last and (v.ndim == 0 or v.shape[-1] != last[name]):
+            raise ValueError(f"Superquadric.create: {name} must have a last axis of {last[name]}, got shape {v.shape}")
+        if name == "rotation" and v.shape[-2:] != (3, 3):
+            raise ValueError(f"Superquadric.create: rotation must be (..., 3, 3), got shape {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"Superquadric.create: {name} must be finite, got {v.tolist()}")
+    if "size" in vals and not np.all(vals["size"] > 0):
+        raise ValueError(f"Superquadric.create: size must be > 0, got {vals['size'].tolist()}")
+    if "epsilon" in vals and not np.all(vals["epsilon"] > 0):
+        raise ValueError(f"Superquadric.create: epsilon must be > 0, got {vals['epsilon'].tolist()}")
+    if "taper" in vals and not np.all(np.abs(vals["taper"]) <= 1.0):
+        raise ValueError(f"Superquadric.create: taper must lie in [-1, 1], got {vals['taper'].tolist()}")
+    if "bend" in vals and not np.all(vals["bend"][..., 0] >= 0):
+        raise ValueError(f"Superquadric.create: bend curvature k must be >= 0, got {vals['bend'].tolist()}")
+    if "rotation" in vals:
+        R = vals["rotation"]
+        err = np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)))
+        if err > 1e-3 or not np.all(np.linalg.det(R) > 0):
+            raise ValueError(f"Superquadric.create: rotation must be orthonormal with det +1 "
+                             f"(max |R^T R - I| = {err:.3g}, det = {np.linalg.det(R).tolist()})")
+
+
 class Superquadric(eqx.Module):
     """A superquadric in general position, optionally tapered and bent (Solina & Bajcsy 1990).
 
@@ -52,7 +82,14 @@ class Superquadric(eqx.Module):
     @classmethod
     def create(cls, size, epsilon=(1.0, 1.0), *, rotation=None, euler=None, translation=(0.0, 0.0, 0.0),
                taper=(0.0, 0.0), bend=(0.0, 0.0), dtype=jnp.float32) -> Superquadric:
-        """Build from plain values; `euler` = ZYZ angles (phi, theta, psi) as in the paper, or `rotation`."""
+        """Build from plain values; `euler` = ZYZ angles (phi, theta, psi) as in the paper, or `rotation`.
+
+        Concrete values are checked (a `ValueError` names the field): sizes finite and > 0, exponents
+        finite and > 0, a rotation orthonormal with det +1 (to 1e-3), everything finite, taper in
+        [-1, 1], bending curvature >= 0. Traced values (under jit / grad) are not checked.
+        """
+        _check_fields(size=size, epsilon=epsilon, rotation=rotation, euler=euler, translation=translation,
+                      taper=taper, bend=bend)
         size = jnp.asarray(size, dtype)
         batch = size.shape[:-1]
         if rotation is None:
@@ -112,17 +149,33 @@ def taper_points(x, taper, a3):
                             x[..., 1:2] * (taper[..., 1:2] * kz + 1.0), x[..., 2:3]], -1)
 
 
+def _atan_ratio(q):
+    """atan(q) / q, with its series below |q| = 1e-2 (safe operand: no 0 / 0 in either branch)."""
+    small = jnp.abs(q) < 1e-2
+    qs = jnp.where(small, 1.0, q)
+    q2 = q * q
+    return jnp.where(small, 1.0 - q2 / 3.0 + q2 * q2 / 5.0, jnp.arctan(qs) / qs)
+
+
 def unbend(x, bend):
-    """Inverse bending (curvature k, angle alpha) in a form stable as k -> 0: (..., 3) -> (..., 3)."""
+    """Inverse bending (curvature k, angle alpha), exact for every k >= 0 and stable as k -> 0.
+
+    The inverse of `bend_points`: with r the coordinate in the bending plane and w = 1 - k r, the
+    bent angle is g = atan2(k Z, w) and z = g / k, written as z = (Z / w) atan(q) / q, q = k Z / w,
+    while w > 0 (its series near q = 0 keeps every k, however small), plain atan2 / k beyond the
+    bending centre; the in-plane shift is k Z^2 / (sqrt((k Z)^2 + w^2) + w). (..., 3) -> (..., 3).
+    """
     k, alpha = bend[..., 0:1], bend[..., 1:2]
     ca, sa = jnp.cos(alpha), jnp.sin(alpha)
     X, Y, Z = x[..., 0:1], x[..., 1:2], x[..., 2:3]
     r = X * ca + Y * sa                       # projection on the bending plane
     w = 1.0 - k * r
-    small = jnp.abs(k) < (1e-4 if x.dtype == jnp.float32 else 1e-8)
-    ks = jnp.where(small, 1.0, k)
     kz = k * Z
-    z = jnp.where(small, _safe_div(Z, w), jnp.arctan2(ks * Z, w) / ks)
+    front = w > 0
+    ws = jnp.where(front, w, 1.0)
+    q = kz / ws
+    ks = jnp.where(front, 1.0, k)             # k != 0 wherever w <= 0
+    z = jnp.where(front, (Z / ws) * _atan_ratio(q), jnp.arctan2(kz, w) / ks)
     den = jnp.sqrt(kz * kz + w * w) + w
     tiny = 1e-12 if x.dtype == jnp.float32 else 1e-30
     shift = k * Z * Z / jnp.maximum(den, tiny)
@@ -130,17 +183,20 @@ def unbend(x, bend):
 
 
 def bend_points(x, bend):
-    """Forward bending of model-frame points (..., 3)."""
+    """Forward bending of model-frame points (..., 3) (Solina & Bajcsy), exact for every k >= 0.
+
+    With g = k z: the in-plane offset (1/k - r)(1 - cos g) = (1 - k r) k z^2 (1 - cos g) / g^2 and
+    the new z = (1 - k r) z sin(g) / g, through `jnp.sinc` (no threshold on k, no 0 / 0).
+    """
     k, alpha = bend[..., 0:1], bend[..., 1:2]
     ca, sa = jnp.cos(alpha), jnp.sin(alpha)
     r = x[..., 0:1] * ca + x[..., 1:2] * sa
-    g = k * x[..., 2:3]
-    small = jnp.abs(k) < (1e-4 if x.dtype == jnp.float32 else 1e-8)
-    ks = jnp.where(small, 1.0, k)
-    # R - r = (1/k - r)(1 - cos g);  Z = (1/k - r) sin g, written without 1/k.
+    z = x[..., 2:3]
+    g = k * z
     one_m_kr = 1.0 - k * r
-    dR = jnp.where(small, 0.0, one_m_kr * (1.0 - jnp.cos(g)) / ks)
-    Z = jnp.where(small, x[..., 2:3], one_m_kr * jnp.sin(g) / ks)
+    half = jnp.sinc(g / (2 * jnp.pi))                       # sin(g / 2) / (g / 2)
+    dR = one_m_kr * k * z * z * 0.5 * half * half           # (1 - k r)(1 - cos g) / k
+    Z = one_m_kr * z * jnp.sinc(g / jnp.pi)                 # (1 - k r) sin(g) / k
     return jnp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)
 
 
@@ -256,38 +312,52 @@ def contains(sq: Superquadric, points):
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
     x = to_model_frame(sq, points)
-    log_f = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
-    return jnp.sqrt(jnp.prod(sq.size, -1)) * jnp.expm1(log_f)
+    log_a = jnp.log(sq.size)
+    log_f = log_inside_outside_local(x, log_a, sq.epsilon)
+    return jnp.exp(0.5 * jnp.sum(log_a, -1)) * jnp.expm1(log_f)
+
+
+def _safe_norm(v):
+    """|v| over the last axis, scaled by max |v_i| (no overflow or underflow of the squares), 0 at 0
+    with a finite (zero) gradient there. The scale is a constant to autodiff (|v| = m |v / m| for any
+    m), so no m^2 is formed in the gradient either."""
+    m = jax.lax.stop_gradient(jnp.max(jnp.abs(v), -1, keepdims=True))
+    nz = m > 0
+    ms = jnp.where(nz, m, 1.0)
+    s2 = jnp.sum((v / ms) ** 2, -1)
+    return jnp.where(nz[..., 0], m[..., 0] * jnp.sqrt(jnp.where(nz[..., 0], s2, 1.0)), 0.0)
 
 
 def distance(sq: Superquadric, points):
     """Approximate Euclidean distance to the surface, |f| / ||grad_p f|| (eq. 10), (..., 3) -> (...).
 
     Exact on the surface to first order; meant for points near the model (growing, selection).
+    Computed in the log domain, |F - 1| / |grad F| = |1 - 1 / F| / |grad log F|: no power of F is
+    formed, the norm is scaled, log F is floored at -20 (float32; -40 float64: within ~1e-9 a of the
+    centre, where eq. 10 means nothing anyway) and |grad log F| at 1e-18 (beyond the cap of F, far
+    outside), so values and reverse-mode gradients are finite for every finite input.
     """
-    def F(p):
-        return inside_outside(sq, p)
+    log_a = jnp.log(sq.size)
+    lo, gfloor = (-20.0, 1e-18) if points.dtype == jnp.float32 else (-40.0, 1e-150)
+
+    def log_F(p):
+        return log_inside_outside_local(to_model_frame(sq, p), log_a, sq.epsilon)
 
     flat = points.reshape(-1, 3)
-    val, grad = jax.vmap(jax.value_and_grad(F))(flat)
-    g2 = jnp.sum(grad * grad, -1)
-    # |grad F| is floored (1e-12 in float32) on a safe operand, so d <= 1e12 |F - 1| near the centre,
-    # where F and its gradient vanish, and the derivative of the inverse square root stays finite.
-    floor = 1e-24 if points.dtype == jnp.float32 else 1e-60
-    d = jnp.abs(val - 1.0) * jax.lax.rsqrt(jnp.where(g2 > floor, g2, floor))
+    lf, g = jax.vmap(jax.value_and_grad(log_F))(flat)
+    gn = _safe_norm(g)
+    d = jnp.abs(jnp.expm1(-jnp.maximum(lf, lo))) / jnp.where(gn > gfloor, gn, gfloor)
     return d.reshape(points.shape[:-1])
 
 
 def radial_distance(sq: Superquadric, points):
-    """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...)."""
+    """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...).
+
+    |x| is a scaled norm (no overflow of |x|^2 beyond 1.8e19 in float32)."""
     x = to_model_frame(sq, points)
     logF = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
-    n2 = jnp.sum(x * x, -1)
-    safe = n2 > _tiny(x.dtype)
-    n = jnp.sqrt(jnp.where(safe, n2, 1.0))
-    log_n = jnp.where(safe, jnp.log(n), jnp.log(_tiny(x.dtype)) / 2)
-    surf = jnp.exp(log_n - 0.5 * logF)  # |x| F^(-1/2): distance of the surface point along the ray
-    return jnp.abs(jnp.where(safe, n, 0.0) - surf)
+    n = _safe_norm(x)
+    return n * jnp.abs(-jnp.expm1(-0.5 * logF))
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -96,6 +96,7 @@ def test_result_shapes(batch):
     assert isinstance(r, Fit)
     assert r.superquadric.size.shape == (K, 3) and r.superquadric.rotation.shape == (K, 3, 3)
     assert r.cost.shape == (K,) and r.converged.shape == (K,) and r.distance.shape == (K, N_POINTS)
+    assert r.weight.shape == (K, N_POINTS) and r.status.shape == (K,) and r.status.dtype == jnp.int32
     assert np.all(np.asarray(r.num_points) == N_POINTS)
     assert r.superquadric.size.dtype == jnp.float32
     for leaf in jax.tree.leaves(r):
@@ -134,7 +135,9 @@ def test_distances_and_cost_consistent(batch):
     assert np.median(d / scale) < 0.02          # noise is 1% of the size
     models = jax.tree.map(lambda v: v[:N_RECOVERY], r.superquadric)
     f = jax.jit(jax.vmap(residual))(models, jnp.asarray(pts, jnp.float32))
-    assert np.allclose(np.sum(np.asarray(f) ** 2, -1), np.asarray(r.cost[:N_RECOVERY]), rtol=1e-3)
+    w = np.asarray(r.weight[:N_RECOVERY])              # weights (all 1 without robust): cost = sum w f^2
+    assert np.allclose(np.sum(w * np.asarray(f) ** 2, -1), np.asarray(r.cost[:N_RECOVERY]), rtol=1e-3)
+    assert np.median(w) > 0.9
 
 
 @pytest.mark.parametrize("which", range(len(TRANSFORMS)))

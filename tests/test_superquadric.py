@@ -222,3 +222,68 @@ def test_segmentation_distance_kernel_matches_eq10(size, eps):
     f_big = np.asarray(inside_outside(_sq(np.asarray(size) * 1.15, eps, {}), pts))
     clear = np.abs(f_big - 1.0) > 1e-3                   # not on the enlarged surface itself
     np.testing.assert_array_equal(np.asarray(inside[:500])[clear], (f_big <= 1.0)[clear])
+
+
+# ----------------------------------------------------------------------------------------------------
+# issue 15: construction checks, bending consistent for small k
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(size=(1.0, 0.0, 1.0)), "size"),
+    (dict(size=(1.0, -2.0, 1.0)), "size"),
+    (dict(size=(1.0, np.nan, 1.0)), "size"),
+    (dict(size=(1.0, 1.0, 1.0), epsilon=(0.0, 1.0)), "epsilon"),
+    (dict(size=(1.0, 1.0, 1.0), epsilon=(np.nan, 1.0)), "epsilon"),
+    (dict(size=(1.0, 1.0, 1.0), rotation=np.diag([1.0, 1.0, 2.0])), "rotation"),
+    (dict(size=(1.0, 1.0, 1.0), rotation=np.diag([1.0, 1.0, -1.0])), "rotation"),
+    (dict(size=(1.0, 1.0, 1.0), translation=(0.0, np.inf, 0.0)), "translation"),
+    (dict(size=(1.0, 1.0, 1.0), taper=(1.5, 0.0)), "taper"),
+    (dict(size=(1.0, 1.0, 1.0), bend=(-0.1, 0.0)), "bend"),
+    (dict(size=(1.0, 1.0)), "size"),
+])
+def test_create_rejects_bad_values_naming_the_field(kwargs, field):
+    """https://github.com/sqjax/sqjax/issues/15: create accepted size <= 0, NaN, non-orthonormal rotations."""
+    size = kwargs.pop("size")
+    with pytest.raises(ValueError, match=field):
+        Superquadric.create(size, **kwargs)
+
+
+def test_create_does_not_check_traced_values():
+    out = jax.jit(lambda s: Superquadric.create(s).size)(jnp.array([1.0, 0.0, 1.0]))
+    assert out.shape == (3,)
+
+
+@pytest.mark.parametrize("k", [0.0, 1e-9, 1e-6, 1e-5, 9e-5, 1e-4, 1.1e-4, 1e-3, 0.05])
+def test_bending_round_trip_and_formula_for_small_k(k):
+    """https://github.com/sqjax/sqjax/issues/15: bend_points dropped k < 1e-4 but unbend did not.
+
+    Forward bending against the textbook formula (float64), and unbend(bend(x)) == x, in mm-sized
+    coordinates (|x| up to 100) where k = 1e-4 moves points by ~0.5."""
+    from sqjax.superquadric import bend_points, unbend
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-100, 100, (500, 3))
+    alpha = 0.7
+    with jax.enable_x64(True):
+        b = jnp.array([k, alpha])
+        xb = np.asarray(bend_points(jnp.asarray(x), b))
+        ca, sa = np.cos(alpha), np.sin(alpha)
+        r, g = x[:, 0] * ca + x[:, 1] * sa, k * x[:, 2]
+        # (1/k - r)(1 - cos g) and (1/k - r) sin g, the first written without cancellation
+        dR = (1 - k * r) * 2 * np.sin(g / 2) ** 2 / k if k > 0 else 0 * r
+        Z = (1 - k * r) * np.sin(g) / k if k > 0 else x[:, 2]
+        assert np.allclose(xb[:, 2], Z, atol=1e-9) and np.allclose(xb[:, 0], x[:, 0] + ca * dR, atol=1e-9)
+        front = (1 - k * r > 0) & (np.abs(g) < np.pi)   # the bending's domain: before its centre, angle < pi
+        back = np.asarray(unbend(jnp.asarray(xb), b))
+        assert np.allclose(back[front], x[front], atol=1e-9)
+    back32 = np.asarray(unbend(bend_points(jnp.asarray(x, jnp.float32), jnp.array([k, alpha], jnp.float32)),
+                               jnp.array([k, alpha], jnp.float32)))
+    tame = front & (np.abs(g) < 1.0)       # float32: atan2 near the angle pi is ill-conditioned
+    assert np.allclose(back32[tame], x[tame], atol=1e-4)
+
+
+def test_bending_gradient_finite_at_zero_curvature():
+    from sqjax.superquadric import bend_points, unbend
+    x = jnp.asarray(np.random.default_rng(1).uniform(-2, 2, (50, 3)), jnp.float32)
+    for f in (bend_points, unbend):
+        g = jax.grad(lambda b, f=f: jnp.sum(f(x, b) ** 2))(jnp.array([0.0, 0.3]))
+        assert bool(jnp.all(jnp.isfinite(g)))

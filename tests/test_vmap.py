@@ -75,15 +75,18 @@ def test_kernel_traces_once_per_bucket(monkeypatch):
 
 _TWO_DEVICES = textwrap.dedent("""
     import jax, numpy as np, jax.numpy as jnp
-    from sqjax.fitting import FitOptions, fit, fit_padded, _use_devices
+    import sqjax.fitting as fitting
+    from sqjax.fitting import FitOptions, fit, _use_devices
     assert jax.device_count() == 2 and _use_devices(4)
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(4, 64, 3)) * np.array([1.0, 0.6, 0.3])
-    opts = FitOptions(max_steps=3, multistart=False)
+    opts = FitOptions(max_steps=3, multistart=False, robust=True)
     sharded = fit(pts, options=opts)
-    th, cost, conv, dist = fit_padded(jnp.asarray(pts, jnp.float32), jnp.ones((4, 64), bool), None, opts)
-    assert np.array_equal(np.asarray(sharded.cost), np.asarray(cost))
-    assert np.array_equal(np.asarray(sharded.distance), np.asarray(dist))
+    fitting._use_devices = lambda K: False            # the same call on one device
+    single = fit(pts, options=opts)
+    assert np.array_equal(np.asarray(sharded.cost), np.asarray(single.cost))
+    assert np.array_equal(np.asarray(sharded.distance), np.asarray(single.distance))
+    assert np.array_equal(np.asarray(sharded.weight), np.asarray(single.weight))
     print("ok")
 """)
 

@@ -1,0 +1,233 @@
+"""Regression tests of issues 14 and 15 for `fit`: outliers, compiles per N, far from the origin,
+NaN under tracing, quality flags, garbage input.
+
+The problems are small (N <= 256) and share a few option sets so that the file compiles few kernels.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_fitting import params, random_problem, volume_iou
+
+from sqjax import Superquadric, fitting
+from sqjax.fitting import FitOptions, Status, fit
+
+FAST = dict(max_steps=8, multistart=False)   # one start: small kernels for the tests of plumbing
+
+
+def with_outliers(pts, frac, seed=0):
+    """Replace a fraction of each problem's points by uniform points in its bounding box."""
+    rng = np.random.default_rng(seed)
+    out, idx_all = pts.copy(), []
+    for k in range(len(pts)):
+        lo, hi = pts[k].min(0), pts[k].max(0)
+        idx = rng.choice(pts.shape[1], int(round(frac * pts.shape[1])), replace=False)
+        out[k, idx] = lo + (hi - lo) * rng.random((len(idx), 3))
+        idx_all.append(idx)
+    return out, idx_all
+
+
+@pytest.fixture(scope="module")
+def outlier_batch():
+    rng = np.random.default_rng(14)
+    problems = [random_problem(rng, n=200) for _ in range(16)]
+    truth = [p[0] for p in problems]
+    clean = np.stack([p[1] for p in problems])
+    dirty, idx = with_outliers(clean, 0.10, seed=3)
+    return truth, clean, dirty, idx, fit(dirty, robust=True), fit(dirty)
+
+
+def test_robust_fit_survives_ten_percent_outliers(outlier_batch):
+    """https://github.com/sqjax/sqjax/issues/14: 10 % uniform outliers broke ~40 % of the fits."""
+    truth, _, _, _, robust, plain = outlier_batch
+    iou_r = np.array([volume_iou(truth[k], params(robust.superquadric, k)) for k in range(len(truth))])
+    iou_p = np.array([volume_iou(truth[k], params(plain.superquadric, k)) for k in range(len(truth))])
+    # measured on these 16 problems: robust median 0.77 (2 below 0.5); plain least squares far lower.
+    # Not yet the issue's target (<= 5 % gross failures at 10 %): see the report of the change.
+    assert np.median(iou_r) > np.median(iou_p) + 0.05, (iou_r, iou_p)
+    assert np.median(iou_r) > 0.7 and np.sum(iou_r < 0.5) <= 3, iou_r
+
+
+def test_weights_mark_the_outliers(outlier_batch):
+    truth, clean, dirty, idx, robust, _ = outlier_batch
+    w = np.asarray(robust.weight)
+    assert w.shape == dirty.shape[:2] and np.all((w >= 0) & (w <= 1))
+    good = [k for k in range(len(truth)) if volume_iou(truth[k], params(robust.superquadric, k)) > 0.8]
+    out_w = np.concatenate([w[k, idx[k]] for k in good])
+    in_mask = np.ones(w.shape, bool)
+    for k in range(len(truth)):
+        in_mask[k, idx[k]] = False
+    in_w = np.concatenate([w[k][in_mask[k]] for k in good])
+    # an outlier drawn in the box may land on the surface: most, not all, get a small weight
+    assert np.median(out_w) < 0.05 and np.mean(out_w < 0.5) > 0.7, out_w
+    assert np.median(in_w) > 0.8 and np.mean(in_w > 0.5) > 0.9
+
+
+def test_non_robust_weights_are_the_mask(outlier_batch):
+    plain = outlier_batch[5]
+    assert np.all(np.asarray(plain.weight) == 1.0)
+
+
+def _count_compiles(fn):
+    from jax._src import dispatch, monitoring
+    events = []
+
+    def listener(name, secs, **kw):
+        if name == dispatch.BACKEND_COMPILE_EVENT:
+            events.append(secs)
+    monitoring.register_event_duration_secs_listener(listener)
+    try:
+        fn()
+    finally:
+        monitoring.unregister_event_duration_listener(listener)
+    return len(events)
+
+
+def test_one_compile_per_bucket_over_twenty_sizes():
+    """https://github.com/sqjax/sqjax/issues/14: one call per problem with a new N compiled ~six small
+    host-side ops each time. Now every N of one bucket reuses one compiled kernel and nothing else compiles."""
+    rng = np.random.default_rng(1)
+    _, pts = random_problem(rng, n=64)
+    opts = FitOptions(max_steps=3, multistart=False, robust=True)   # a compile-cache key of its own
+    fit(pts[:33], options=opts)                                        # warm: the (1, 64) kernel
+    fit(pts[:33], options=opts, init=Superquadric.create([1.0, 1.0, 1.0]))   # and the warm-start one
+    sizes = range(40, 60)
+
+    def loop():
+        for n in sizes:
+            r = fit(pts[:n], options=opts)
+            jax.block_until_ready(r)
+            assert r.distance.shape == (n,) and r.weight.shape == (n,)
+        for n in (41, 57):
+            jax.block_until_ready(fit(pts[:n], options=opts, init=Superquadric.create([1.0, 1.0, 1.0])))
+    assert _count_compiles(loop) == 0
+
+
+def test_far_from_origin_float64():
+    """https://github.com/sqjax/sqjax/issues/15: float64 points were cast to float32 before centring,
+    so fit(pts + 5e6) was 25 % off. Now centred in float64 on the host first."""
+    rng = np.random.default_rng(4)
+    _, pts = random_problem(rng, n=120)
+    with jax.enable_x64(True):
+        ref = fit(pts, dtype=jnp.float64, **FAST)
+        far = fit(pts + 1e7, dtype=jnp.float64, **FAST)
+        assert np.allclose(np.asarray(far.superquadric.size), np.asarray(ref.superquadric.size), atol=1e-3)
+        assert np.allclose(np.asarray(far.superquadric.translation) - 1e7,
+                           np.asarray(ref.superquadric.translation), atol=1e-3)
+    # float32 output, float64 input far away: the shape is as good as at the origin
+    far32, ref32 = fit(pts + 1e7, **FAST), fit(pts, **FAST)
+    assert np.allclose(np.asarray(far32.superquadric.size), np.asarray(ref32.superquadric.size), rtol=1e-3)
+    # float32 input far away: centred (in float32) before anything else; the shape survives
+    p32 = (pts + 1e4).astype(np.float32)
+    r = fit(p32, **FAST)
+    assert volume_iou(params(ref32.superquadric), (params(r.superquadric)[0], params(r.superquadric)[1],
+                      params(r.superquadric)[2], params(r.superquadric)[3] - 1e4)) > 0.9
+
+
+def test_nan_row_under_grad_and_jit():
+    """https://github.com/sqjax/sqjax/issues/15: one NaN row under jax.grad gave a lineax traceback,
+    under jax.jit NaN parameters. Now rows are masked by jnp.where before any arithmetic."""
+    rng = np.random.default_rng(5)
+    _, pts = random_problem(rng, n=100)
+    bad = pts.copy()
+    bad[7] = np.nan
+    ref = fit(pts[np.arange(100) != 7], **FAST)
+
+    def loss(p):
+        return jnp.sum(fit(p, **FAST).superquadric.size)
+
+    jitted = jax.jit(lambda p: fit(p, **FAST))(jnp.asarray(bad, jnp.float32))
+    assert np.all(np.isfinite(np.asarray(jitted.superquadric.size)))
+    assert np.allclose(np.asarray(jitted.superquadric.size), np.asarray(ref.superquadric.size), rtol=2e-2)
+    assert int(jitted.num_points) == 99 and float(jitted.weight[7]) == 0.0
+    g = jax.grad(loss)(jnp.asarray(bad, jnp.float32))
+    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g)[7] == 0.0)
+
+
+def test_too_few_points_under_tracing_is_flagged():
+    """Under jit the minimum-points check cannot raise: the status says so and converged is False."""
+    rng = np.random.default_rng(6)
+    _, pts = random_problem(rng, n=40)
+    mask = np.arange(40) < 5
+    r = jax.jit(lambda p, m: fit(p, m, **FAST))(jnp.asarray(pts, jnp.float32), jnp.asarray(mask))
+    assert int(r.status) & Status.TOO_FEW_POINTS and not bool(r.converged)
+    assert np.all(np.isfinite(np.asarray(r.superquadric.size)))
+    with pytest.raises(ValueError, match="too few"):
+        fit(pts, mask, **FAST)
+
+
+def test_garbage_is_flagged_not_converged():
+    """https://github.com/sqjax/sqjax/issues/15: converged=True on garbage."""
+    same = np.ones((40, 3))
+    r = fit(same, **FAST)
+    assert int(r.status) & Status.DEGENERATE and not bool(r.converged)
+    assert all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree.leaves(r.superquadric))
+    line = np.linspace(0, 1, 40)[:, None] * np.array([1.0, 2.0, 3.0])
+    assert int(fit(line, **FAST).status) & Status.DEGENERATE
+
+
+@pytest.mark.parametrize("value", [1e15, 1e20, 1e30])
+def test_one_far_row_is_dropped_and_flagged(value):
+    """One depth pixel at 1e30 ruined a fit (centring on the mean): median centre, the row dropped."""
+    rng = np.random.default_rng(8)
+    truth, pts = random_problem(rng, n=100)
+    ref = fit(np.delete(pts, 3, 0), **FAST)          # the same fit without that row
+    bad = pts.copy()
+    bad[3] = value
+    r = fit(bad, **FAST)
+    assert int(r.status) & Status.FAR_POINTS and float(r.weight[3]) == 0.0 and int(r.num_points) == 99
+    assert volume_iou(params(ref.superquadric), params(r.superquadric)) > 0.95
+    assert all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree.leaves(r))
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("size", [np.nan, 1.0, 1.0], "init.size must be finite"),
+    ("size", [0.0, 1.0, 1.0], "init.size must be > 0"),
+    ("translation", [np.nan, 0.0, 0.0], "init.translation must be finite"),
+])
+def test_bad_warm_start_raises_naming_the_field(field, value, message):
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    good = Superquadric.create([1.0, 1.0, 1.0])
+    init = Superquadric(**{**{k: getattr(good, k) for k in ("size", "epsilon", "rotation", "translation",
+                                                              "taper", "bend")}, field: jnp.asarray(value)})
+    with pytest.raises(ValueError, match=message):
+        fit(pts, init=init, **FAST)
+
+
+def test_bad_warm_start_under_tracing_is_flagged():
+    pts = np.random.default_rng(0).normal(size=(50, 3)) * np.array([1.0, 0.6, 0.3])
+
+    def run(size):
+        init = Superquadric.create([1.0, 1.0, 1.0])
+        init = Superquadric(size, init.epsilon, init.rotation, init.translation, init.taper, init.bend)
+        return fit(pts, init=init, **FAST)
+    r = jax.jit(run)(jnp.asarray([0.0, 1.0, 1.0]))
+    assert int(r.status) & Status.DEGENERATE and not bool(r.converged)
+    assert np.all(np.isfinite(np.asarray(r.superquadric.size)))
+
+
+def test_status_describe():
+    assert Status.describe(0) == "OK"
+    assert Status.describe(Status.MAX_STEPS | Status.FAR_POINTS) == "MAX_STEPS|FAR_POINTS"
+
+
+def test_clean_fit_is_ok_and_converged():
+    rng = np.random.default_rng(9)
+    _, pts = random_problem(rng, n=200)
+    r = fit(pts, robust=True)
+    assert Status.describe(r.status) in ("OK", "BOUND_ACTIVE"), Status.describe(r.status)
+    assert bool(r.converged)
+    assert float(np.mean(np.asarray(r.weight) > 0.5)) > 0.95
+
+
+def test_segmentation_kernel_unchanged_by_default_options():
+    """`fit_padded` with the segmentation's options keeps its old behaviour: robust is off there."""
+    assert FitOptions().robust is False
+    assert FitOptions(max_steps=4, multistart=False).robust is False
+    rng = np.random.default_rng(10)
+    _, pts = random_problem(rng, n=64)
+    opts = FitOptions(max_steps=4, multistart=False)
+    theta, cost, conv, dist = fitting.fit_padded(jnp.asarray(pts[None], jnp.float32), jnp.ones((1, 64), bool),
+                                                 None, opts)
+    assert theta.shape == (1, 11) and cost.shape == (1,) and dist.shape == (1, 64)
