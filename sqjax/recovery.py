@@ -122,6 +122,15 @@ def _plane_residual(q: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(q.T))[0], 0.0) * (n - 1) / max(n - 3, 1)))
 
 
+def robust_centre(points: np.ndarray, far: float = 100.0) -> np.ndarray:
+    """The frame of the models: the mean of the points (P, 3) within `far` median radii of their median,
+    so that one far outlier (a depth pixel at 1e30) does not move it; the plain mean otherwise."""
+    med = np.median(points, 0)
+    r = np.linalg.norm(points - med, axis=1)
+    near = r <= far * max(float(np.median(r)), 1e-30)
+    return points[near].mean(0)
+
+
 def noise_scale(points: np.ndarray, k: float, z_ref: float) -> np.ndarray:
     """(z / z_ref)^k of camera-frame points (P, 3): their noise in units of the noise at depth z_ref."""
     return (np.abs(points[:, 2]) / z_ref) ** k
@@ -307,8 +316,7 @@ class _Runner:
         # per point: the local noise over the reference noise (`noise_exponent`); distances are divided
         # by it, so that tau and the selection weights count in units of the local noise
         self.scale = None if dom.noise_model is None else noise_scale(dom.points, *dom.noise_model).astype(np.float32)
-        # the frame of the models: the median of the points (one far outlier does not move it)
-        self.centre = np.median(dom.points, 0) if centre is None else np.asarray(centre, np.float64)
+        self.centre = robust_centre(dom.points) if centre is None else np.asarray(centre, np.float64)
         self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
         Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
         self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.zeros(3)), dtype)

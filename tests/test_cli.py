@@ -163,14 +163,15 @@ def test_segment_png_with_camera_subsample_and_evaluate(capsys, scene, tmp_path)
     assert err == ""                       # no progress bar when stderr is not a terminal
     assert "labels.png" in stdout and "figure.png" not in stdout
     doc = json.loads((out / "models.json").read_text())
-    assert doc["image_size"] == [30, 40] and doc["input"]["shape"] == list(SHAPE)
+    # segmented at every 2nd pixel, labelled at the input's size
+    assert doc["image_size"] == list(SHAPE) and doc["input"]["shape"] == list(SHAPE)
     assert doc["settings"]["camera_source"] == "--camera" and doc["settings"]["options"]["max_steps"] == 30
-    assert np.load(out / "labels.npy").shape == (30, 40)
-    # evaluate applies the recorded subsampling to the full-size truth
+    assert doc["settings"]["options"]["subsample"] == 2
+    assert np.load(out / "labels.npy").shape == SHAPE
     code, stdout, err = run(capsys, "evaluate", out, scene, "--json", tmp_path / "score.json")
     assert code == 0, err and "correct" in stdout
     score = json.loads((tmp_path / "score.json").read_text())
-    assert score["subsample"] == 2 and score["n_truth"] == 3 and score["tolerance"] == 0.8
+    assert score["subsample"] == 1 and score["n_truth"] == 3 and score["tolerance"] == 0.8
 
 
 def test_segment_point_cloud(capsys, scene, tmp_path):

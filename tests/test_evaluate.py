@@ -146,7 +146,9 @@ def test_explained_fraction_on_a_rendered_scene():
 
 def test_parameter_errors_axis_permutation():
     r = np.asarray(BOX.rotation)
-    same = Superquadric.create((0.3, 0.5, 0.4), (0.1, 0.1), rotation=r[:, [1, 0, 2]], translation=(1.0, 2.0, 3.0))
+    # axes 1 and 2 swapped (and the third flipped, to stay a rotation): the same solid
+    same = Superquadric.create((0.3, 0.5, 0.4), (0.1, 0.1), rotation=r[:, [1, 0, 2]] * [1, 1, -1],
+                               translation=(1.0, 2.0, 3.0))
     e = parameter_errors(BOX, same, iou_samples=100_000)
     assert e["size_rel_error"] < 1e-6 and e["axes_permuted"] == 0.0 and e["centre_error"] < 1e-6
     assert e["volume_iou"] > 0.99

@@ -32,7 +32,8 @@ def _fake():
     labels = np.zeros((12, 16), np.int32)
     labels[2:6, 2:8], labels[6:10, 8:14] = 1, 2
     parts = [types.SimpleNamespace(superquadric=sq, region=np.flatnonzero(labels == i + 1), error=0.01 * (i + 1),
-                                   num_points=int((labels == i + 1).sum())) for i, sq in enumerate(_sqs())]
+                                   num_points=int((labels == i + 1).sum()),
+                                   num_explained=int((labels == i + 1).sum())) for i, sq in enumerate(_sqs())]
     seg = types.SimpleNamespace(parts=parts, labels=labels, history=[], noise=0.002, threshold=0.006,
                                 timings={"total": 1.0, "compile": 0.5, "run": 0.5}, stats={"seeds": 4})
     depth = np.full((12, 16), 2.0, np.float32)
