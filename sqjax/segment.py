@@ -417,10 +417,8 @@ def _finish(run: _Runner, models: _Models):
         # A model whose every pixel went to a nearer one is not a part of the label image: drop it, so
         # that parts and labels agree (label i + 1 = parts[i], and every part owns labelled pixels).
         count = np.bincount(best[has], minlength=len(models.theta))
-        owns = np.flatnonzero(count > 0)
-        relabel = np.zeros(len(models.theta), np.int32)
-        relabel[owns] = np.arange(1, owns.size + 1)
-        flat[run.dom.index[has]] = relabel[best[has]]
+        owns, relabel = _owners(count)
+        flat[run.dom.index[has]] = relabel[best[has] + 1]
         models.take(owns)
         count = count[owns]
     parts = []
@@ -430,6 +428,15 @@ def _finish(run: _Runner, models: _Models):
         parts.append(Part(sq, run.dom.index[reg], float(np.sum(models.dist[i].astype(np.float64) ** 2)),
                           int(count[i]), int(reg.size)))
     return parts, flat.reshape(run.dom.shape)
+
+
+def _owners(count: np.ndarray):
+    """Models that own labelled pixels (count (M,) of each model's pixels): their indices, and the map
+    (M + 1,) from old label (0 = none, i + 1 = model i) to new label, 1..K in the same order."""
+    owns = np.flatnonzero(count > 0)
+    relabel = np.zeros(count.size + 1, np.int32)
+    relabel[owns + 1] = np.arange(1, owns.size + 1)
+    return owns, relabel
 
 
 def working_step(shape) -> int:
@@ -471,9 +478,7 @@ def _label_full(image: RangeImage, step: int, run: _Runner, models: _Models, coa
     labels = np.zeros(H * W, np.int32)
     labels[flat] = owner
     count = np.bincount(owner, minlength=len(models.theta) + 1)[1:]
-    owns = np.flatnonzero(count > 0)
-    relabel = np.zeros(len(models.theta) + 1, np.int32)
-    relabel[owns + 1] = np.arange(1, owns.size + 1)
+    owns, relabel = _owners(count)
     labels = relabel[labels]
     sqs = _to_world(models.theta, run.centre)
     parts = []
