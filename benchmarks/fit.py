@@ -348,7 +348,8 @@ def suite_slabs(args, results):
         f_fit = np.array([np.sum(np.asarray(sqjax.residual(jax.tree.map(lambda v, k=k: v[k], out.superquadric),
                                                            pts[k])) ** 2) for k in range(len(SLABS))])
         sc = iou(truth, out.superquadric)
-        row = {"suite": "slabs", "robust": robust, "thickness_ratio": (thick / np.array([s[0][2] for s in SLABS])).tolist(),
+        row = {"suite": "slabs", "robust": robust,
+               "thickness_ratio": (thick / np.array([s[0][2] for s in SLABS])).tolist(),
                "cost_fit_over_cost_truth": (f_fit / f_true).tolist(), "iou": sc.tolist()}
         results["suites"].append(row)
         print(f"slabs robust={robust!s:5s}: thickness fit/true {np.round(row['thickness_ratio'], 2).tolist()}  "

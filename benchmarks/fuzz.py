@@ -70,7 +70,7 @@ def cases(rng, n: int, deform: bool = True) -> dict:
     lim = 1e3 * size.max(1, keepdims=True)
     norm = np.linalg.norm(x, axis=1, keepdims=True)
     x = np.where(deformed[:, None] & (norm > lim), x * (lim / np.maximum(norm, lim)), x)
-    f32 = lambda v: np.asarray(v, np.float32)  # noqa: E731
+    f32 = lambda v: np.asarray(v, np.float32)
     return {"point": f32(x + t), "size": f32(size), "epsilon": f32(eps), "rotation": f32(R),
             "translation": f32(t), "taper": f32(taper), "bend": f32(bend)}
 

@@ -146,7 +146,6 @@ def mesh_scene(path, view, shape=(120, 160), noise=0.005):
     """A mesh whose connected components are its parts, seen from view 0, 1 or 2 (azimuths 120 degrees
     apart, 30 degrees above): (range image with one label per component)."""
     import trimesh
-
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -244,7 +243,8 @@ def main(argv=None):
             for r in worst:
                 image, kw = dict(items)[r["scene"]]()
                 kw.pop("truth_sq", None), kw.pop("table", None)
-                run_scene(image, image.labels, figure=Path(args.figures) / f"{suite}_{r['scene'].replace(':', '_')}.png")
+                run_scene(image, image.labels,
+                          figure=Path(args.figures) / f"{suite}_{r['scene'].replace(':', '_')}.png")
     results["peak_rss_gib"] = peak_rss_gib()
     print_table(results)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
@@ -255,7 +255,8 @@ def main(argv=None):
 def print_table(results):
     print()
     print(f"{'suite':22s} {'scenes':>6s} {'parts':>6s} {'correct':>8s} {'over':>6s} {'under':>6s} {'missed':>7s} "
-          f"{'noise':>6s} {'T=0.5':>6s} {'objects':>8s} {'table':>6s} {'IoU':>5s} {'run s (med/max)':>16s} {'compile s':>9s}")
+          f"{'noise':>6s} {'T=0.5':>6s} {'objects':>8s} {'table':>6s} {'IoU':>5s} "
+          f"{'run s (med/max)':>16s} {'compile s':>9s}")
     def line(name, s):
         obj = f"{s['object_rate']:8.1%}" if "object_rate" in s else f"{'':8s}"
         tab = f"{s['table_rate']:6.0%}" if "table_rate" in s else f"{'':6s}"

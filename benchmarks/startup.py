@@ -50,7 +50,7 @@ def main(argv=None) -> int:
         cold = _run(demo, env, cold_info)
         warm = _run(demo, env, warm_info)
         cache_files = sum(1 for _ in (Path(tmp) / "cache").rglob("*") if _.is_file())
-    rows = [("sqjax --help (median of %d)" % args.repeat, helps[len(helps) // 2], {}),
+    rows = [(f"sqjax --help (median of {args.repeat:d})", helps[len(helps) // 2], {}),
             ("sqjax demo, first run (empty cache)", cold, cold_info),
             ("sqjax demo, second run (warm cache)", warm, warm_info)]
     print(f"{'command':<40} {'wall s':>8} {'segment s':>10} {'compile s':>10}")

@@ -444,8 +444,9 @@ def _segment_file(args, path, options, out) -> int:
         data = data[:: args.subsample]
     camera_source = "--intrinsics" if args.intrinsics is not None else "--camera" if args.camera is not None \
         else "--ortho" if args.ortho is not None else ("file" if kind == "range_image" else None)
-    settings = {"subsample": 1 if kind == "range_image" else (args.subsample or 1), "depth_scale": args.depth_scale, "depth_scale_convention":
-                "stored units per metre (divides)", "noise": args.noise, "camera_source": camera_source,
+    settings = {"subsample": 1 if kind == "range_image" else (args.subsample or 1), "depth_scale": args.depth_scale,
+                "depth_scale_convention": "stored units per metre (divides)", "noise": args.noise,
+                "camera_source": camera_source,
                 "color": None if args.color is None else str(args.color), "options": dataclasses.asdict(options)}
     _segment_and_write(data, kind, out, input_path=path, input_shape=input_shape, settings=settings,
                        options=options, figure=not args.no_figure, quiet=args.quiet)
@@ -568,9 +569,7 @@ def _read_truth_labels(path: Path):
 
 def cmd_evaluate(args) -> int:
     from .evaluate import hoover
-    from .export import write_json
-
-    from .export import read_models_json
+    from .export import read_models_json, write_json
 
     result = Path(args.result)
     meta = {}
@@ -608,7 +607,7 @@ def cmd_evaluate(args) -> int:
         raise CLIError(f"label shapes differ: result {found.shape} ({labels_path}) vs truth {truth.shape} "
                        f"({truth_path})")
     score = hoover(truth, found, tolerance=args.tolerance)
-    pct = lambda r: "  -" if not np.isfinite(r) else f"{100 * r:5.1f} %"  # noqa: E731
+    pct = lambda r: "  -" if not np.isfinite(r) else f"{100 * r:5.1f} %"
     print(f"Hoover et al. (1996) at tolerance {score.tolerance:g}: {score.n_truth} truth regions, "
           f"{score.n_found} found regions")
     print(f"  correct  {score.correct:4d}  {pct(score.correct_rate)} of truth")
@@ -678,8 +677,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("segment", parents=[common], help="segment a range image or point cloud into superquadric parts",
                        description="Segment INPUT into superquadric parts (recover-and-select) and write "
-                       "models.json, labels.npy, labels.png, labels_id.png (clouds: labels.ply), parts.glb (Y-up), parts.ply and "
-                       "figure.png into DIR. Inputs: " + _SUPPORTED + ".")
+                       "models.json, labels.npy, labels.png, labels_id.png (clouds: labels.ply), parts.glb (Y-up), "
+                       "parts.ply and figure.png into DIR. Inputs: " + _SUPPORTED + ".")
     s.add_argument("input", metavar="INPUT", nargs="+", help="range image or point cloud file; several files, a "
                    "folder or a glob: one output folder each under DIR, summary.csv / summary.json (sqjax.dataset)")
     s.add_argument("--workers", type=_positive(int), metavar="N", help="several inputs: a local Dask cluster of N")

@@ -305,7 +305,8 @@ def segment_many(inputs: Iterable, out=None, *, options=None, subsample: int = 1
         raise ValueError(f"segment_many: subsample must be >= 1, got {subsample}")
     items = list(inputs)
     names = _names(items)
-    settings = {"subsample": int(subsample), "truth": getattr(truth, "__name__", None if truth is None else repr(truth)),
+    settings = {"subsample": int(subsample),
+                "truth": getattr(truth, "__name__", None if truth is None else repr(truth)),
                 "options": dataclasses.asdict(opts)}
     out = None if out is None else Path(os.fspath(out))
     cfg = _Config(opts, read, int(subsample), truth, out, bool(figure), settings,
@@ -360,7 +361,8 @@ def _run_dask(todo, cfg, results, bar, workers, scheduler):
                 results[i] = fut.result()
             except Exception as e:  # noqa: BLE001 - a worker died or the task could not run
                 where = str(os.fspath(item)) if _is_path(item) else name
-                results[i] = SceneResult(_row(name, item, status="failed", error=_one_line(e, where), wall_seconds=None))
+                results[i] = SceneResult(_row(name, item, status="failed", error=_one_line(e, where),
+                                              wall_seconds=None))
             bar.update(results[i])
     finally:
         if client is not scheduler:
@@ -419,7 +421,7 @@ def summary_table(results) -> str:
     buf = io.StringIO()
     buf.write(f"{'scene':24s} {'status':8s} {'parts':>5s} {'run s':>7s} {'compile s':>9s} {'correct':>8s}  error\n")
     for r in (res.row for res in results):
-        num = lambda k, f: "-" if r.get(k) is None else format(r[k], f)  # noqa: E731
+        num = lambda k, f: "-" if r.get(k) is None else format(r[k], f)  # noqa: B023  (used within the iteration)
         corr = "-" if r.get("correct") is None else f"{r['correct']}/{r['truth_parts']}"
         buf.write(f"{r['name'][:24]:24s} {r['status']:8s} {num('parts', 'd'):>5s} {num('run_seconds', '.2f'):>7s} "
                   f"{num('compile_seconds', '.1f'):>9s} {corr:>8s}  {r.get('error') or ''}\n")
@@ -447,14 +449,15 @@ def cli_segment_many(args) -> int:
     paths = expand_inputs(args.input)
     read = functools.partial(load_input, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale)
     out = Path(args.out) if args.out else Path("sqjax-many")
-    results = segment_many(paths, out, options=dataclasses.replace(_segment_options(args.option, args.noise), subsample=args.subsample),
+    results = segment_many(paths, out, options=dataclasses.replace(_segment_options(args.option, args.noise),
+                                                                   subsample=args.subsample),
                            read=read, figure=not args.no_figure, workers=args.workers, scheduler=args.scheduler,
                            progress=False if args.quiet else None)
     failed = [r for r in results if r.status == "failed"]
     for r in failed:
-        print(f"sqjax: error: {r.error}", file=sys.stderr)
+        print(f"sqjax: error: {r.error}", file=sys.stderr)  # noqa: T201  (CLI output)
     if not args.quiet:
-        print(summary_table(results), end="")
-        print(f"wrote {out}{os.sep}: {len(results) - len(failed)} of {len(results)} scenes "
+        print(summary_table(results), end="")  # noqa: T201  (CLI output)
+        print(f"wrote {out}{os.sep}: {len(results) - len(failed)} of {len(results)} scenes "  # noqa: T201
               f"({sum(r.status == 'resumed' for r in results)} already done), summary.csv, summary.json")
     return 1 if failed else 0

@@ -106,9 +106,9 @@ def hoover(truth, found, *, tolerance: float = 0.8, ignore=None) -> HooverScore:
     fi = np.searchsorted(fid, f)  # valid only where f > 0
     M = np.bincount(ti, minlength=len(tid))
     R = np.bincount(fi[f > 0], minlength=len(fid))
-    O = np.zeros((len(tid), len(fid)), np.int64)
+    O = np.zeros((len(tid), len(fid)), np.int64)  # noqa: E741  (O_mn: the overlap matrix of Hoover et al.)
     np.add.at(O, (ti[f > 0], fi[f > 0]), 1)
-    ge = lambda o, size: o >= tolerance * size * (1 - 1e-12) - 1e-9  # noqa: E731  (o >= T size, rounding-safe)
+    ge = lambda o, size: o >= tolerance * size * (1 - 1e-12) - 1e-9  # o >= T size, rounding-safe
     big_t = ge(O, M[:, None])  # O_mn >= T M_m
     big_f = ge(O, R[None, :])  # O_mn >= T R_n
     free_t, free_f = np.ones(len(tid), bool), np.ones(len(fid), bool)
@@ -181,7 +181,7 @@ def volume_iou_batch(a: Superquadric, b: Superquadric, *, n: int = 100_000, seed
 
 def volume_iou(a: Superquadric, b: Superquadric, *, n: int = 100_000, seed: int = 0) -> float:
     """Monte Carlo volume IoU of two superquadrics (see `volume_iou_batch`)."""
-    expand = lambda s: jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], s)  # noqa: E731
+    expand = lambda s: jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], s)
     return float(volume_iou_batch(expand(a), expand(b), n=n, seed=seed)[0])
 
 

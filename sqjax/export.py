@@ -380,7 +380,8 @@ def atomic_paths(*paths):
             if t.is_dir() and not t.is_symlink():
                 raise IsADirectoryError(errno.EISDIR, f"{t}: is a folder, expected a file name")
             try:
-                fd, tmp = tempfile.mkstemp(prefix=f".{t.name}.", suffix=t.suffix, dir=t.parent if str(t.parent) else ".")
+                fd, tmp = tempfile.mkstemp(prefix=f".{t.name}.", suffix=t.suffix,
+                                           dir=t.parent if str(t.parent) else ".")
             except OSError as e:
                 raise _write_error(t, e) from None
             os.close(fd)

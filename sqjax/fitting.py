@@ -313,7 +313,7 @@ def _levenberg_marquardt(state, points, mask, opts, num_steps, weight=None):
         ok = jnp.isfinite(ncost) & (ncost < cost)
         rel = jnp.where(ok & jnp.isfinite(cost), (cost - ncost) / jnp.maximum(cost, tiny), jnp.where(ok, 1.0, 0.0))
         lam = jnp.where(jnp.isfinite(cost), jnp.clip(jnp.where(ok, lam * _LM_DOWN, lam * _LM_UP), 1e-9, 1e9), lam)
-        pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(ok, u, v), a, b)  # noqa: E731
+        pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(ok, u, v), a, b)
         state, cost, JTJ, JTr = pick((trial, ncost, nJTJ, nJTr), (state, cost, JTJ, JTr))
         diag = jnp.diagonal(JTJ)
         damp = lam * (diag + 1e-9 * jnp.max(diag) + tiny)
@@ -621,7 +621,7 @@ def _init_theta(init, opts):
     if opts.deform:
         ok = ok & jnp.all(jnp.isfinite(taper), -1) & jnp.all(jnp.isfinite(bend), -1)
     lo, hi = opts.epsilon_range
-    safe = lambda v, d: jnp.where(ok.reshape(ok.shape + (1,) * (v.ndim - 1)), v, d)  # noqa: E731
+    safe = lambda v, d: jnp.where(ok.reshape(ok.shape + (1,) * (v.ndim - 1)), v, d)
     size = safe(size, 1.0)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=R.dtype), R.shape)
     parts = [jnp.log(size), jnp.clip(safe(eps, 1.0), lo, hi), so3.log(safe(R, eye)), safe(t, 0.0)]
@@ -647,7 +647,7 @@ def _fit_sharded(points, mask, init, opts: FitOptions):
     """`_fit_kernel` with the problems split over every local CPU device (one `shard_map` block each)."""
     mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
     spec = jax.sharding.PartitionSpec("k")
-    body = lambda p, m, i: _fit_problems(p, m, i, opts)  # noqa: E731
+    body = lambda p, m, i: _fit_problems(p, m, i, opts)
     return jax.shard_map(body, mesh=mesh, in_specs=(spec, spec, None if init is None else spec),
                          out_specs=spec, check_vma=False)(points, mask, init)
 
@@ -833,7 +833,7 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     msk = xp.pad(mask, ((0, Kb - K), (0, Nb - N)))
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)
     if Kb > K:   # pad the batch with copies of problem 0, dropped below
-        rep = lambda v: xp.concatenate([v[:K], xp.repeat(v[:1], Kb - K, 0)])  # noqa: E731
+        rep = lambda v: xp.concatenate([v[:K], xp.repeat(v[:1], Kb - K, 0)])
         pts, msk = rep(pts), rep(msk)
         fields = None if fields is None else tuple(rep(v) for v in fields)
     kernel = _fit_sharded if xp is np and _use_devices(Kb) else _fit_kernel
@@ -850,7 +850,7 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
                      far, noise)
     converged = conv & ((status & int(_FAILED)) == 0)
     # never hand out NaN: a non-finite fit is replaced by the moment-free unit sphere at the centre
-    keep = lambda v, d: xp.where(finite_out.reshape((K,) + (1,) * (v.ndim - 1)), v, d)  # noqa: E731
+    keep = lambda v, d: xp.where(finite_out.reshape((K,) + (1,) * (v.ndim - 1)), v, d)
     sq = Superquadric(keep(size, 1.0), keep(eps, 1.0), keep(R, xp.eye(3, dtype=R.dtype)),
                       keep(t, centre).astype(dtype), taper, bend)
     cost = xp.where(finite_out, cost, xp.inf)

@@ -461,7 +461,7 @@ def _intrinsics(path_or_dict):
         d = d["intrinsic"]
     if not isinstance(d, dict):
         raise ValueError(f"{where}: intrinsics must be a JSON object, got {type(d).__name__}")
-    pick = lambda *keys: next((d[k] for k in keys if k in d), None)  # noqa: E731
+    pick = lambda *keys: next((d[k] for k in keys if k in d), None)
     fx, fy, cx, cy = pick("fx"), pick("fy"), pick("cx", "x_offset", "ppx"), pick("cy", "y_offset", "ppy")
     matrix = pick("intrinsic_matrix", "K", "camera_matrix")
     try:

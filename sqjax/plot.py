@@ -92,9 +92,9 @@ def _match_colors(model_labels: np.ndarray, final_labels: np.ndarray, n_models: 
     """Colour indices for intermediate models: a model takes the colour of the final part whose pixels it
     overlaps most (greedy one-to-one), the others colours after the final parts'."""
     both = (model_labels > 0) & (final_labels > 0)
-    O = np.zeros((n_models + 1, n_final + 1), np.int64)
+    O = np.zeros((n_models + 1, n_final + 1), np.int64)  # noqa: E741  (overlap counts, as in evaluate.hoover)
     np.add.at(O, (model_labels[both], final_labels[both]), 1)
-    O = O[1:, 1:]
+    O = O[1:, 1:]  # noqa: E741
     out = -np.ones(n_models, np.int64)
     used = np.zeros(n_final, bool)
     for flat in np.argsort(-O, axis=None, kind="stable"):
@@ -205,7 +205,7 @@ def _history_panels(segmentation):
     """(title, models) of the three model panels: after the first selection, midway, final."""
     hist = list(segmentation.history)
     final = [p.superquadric for p in segmentation.parts]
-    plural = lambda n, w: f"{n} {w}{'s' if n != 1 else ''}"  # noqa: E731
+    plural = lambda n, w: f"{n} {w}{'s' if n != 1 else ''}"
     if not hist:
         return [("after the first selection: none", []), ("midway: none", []),
                 (f"final: {plural(len(final), 'part')}", final)]
@@ -220,8 +220,9 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
     """The paper's figure sequence for one segmentation, as a `matplotlib.figure.Figure`.
 
     Range images (a `RangeImage`): (a) the range image, (b) the back-projected points (x, y, z) coloured
-    by depth (by `image.colors` when the image has colours: RGB-D frames, coloured PCDs), (c) the models after the first selection, (d) midway, (e) the final models, all three ray
-    cast with the image's camera over the data (grey), and (f) the label image (as `labels.png`).
+    by depth (by `image.colors` when the image has colours: RGB-D frames, coloured PCDs), (c) the models
+    after the first selection, (d) midway, (e) the final models, all three ray cast with the image's camera
+    over the data (grey), and (f) the label image (as `labels.png`).
     Point clouds (an `(P, 3)` array): the same in 3-D axes, (a) the points coloured by depth and (f) the
     points coloured by label. Final parts use `label_colors`; earlier models take the colour of the
     final part they overlap most. Saved to `path` when given.

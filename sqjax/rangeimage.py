@@ -67,7 +67,8 @@ class OrthographicCamera:
         return np.where(np.isfinite(depth)[..., None], pts, np.nan)
 
     def project(self, points):
-        return np.stack([points[..., 0] / self.pixel_size + self.cx, points[..., 1] / self.pixel_size + self.cy], -1), points[..., 2]
+        return (np.stack([points[..., 0] / self.pixel_size + self.cx, points[..., 1] / self.pixel_size + self.cy], -1),
+                points[..., 2])
 
     def scaled(self, step: int, r0: int = 0, c0: int = 0) -> OrthographicCamera:
         return OrthographicCamera(self.pixel_size * step, (self.cx - c0) / step, (self.cy - r0) / step)
@@ -166,7 +167,8 @@ class RangeImage:
         r0, r1, _ = slice(r0, r1).indices(H)
         c0, c1, _ = slice(c0, c1).indices(W)
         if r1 <= r0 or c1 <= c0:
-            raise ValueError(f"RangeImage.crop: non-empty crop needed, got rows {r0}:{r1}, columns {c0}:{c1} of a {H}x{W} image")
+            raise ValueError(f"RangeImage.crop: non-empty crop needed, got rows {r0}:{r1}, columns {c0}:{c1} "
+                             f"of a {H}x{W} image")
         sl = (slice(r0, r1), slice(c0, c1))
         return RangeImage(self.depth[sl], self.camera.scaled(1, r0, c0),
                           None if self.labels is None else self.labels[sl],

@@ -21,6 +21,7 @@ from . import rotation as so3
 from .fitting import FitOptions, bucket, fit_padded
 from .rangeimage import OrthographicCamera, RangeImage
 from .superquadric import log_inside_outside_and_gradient
+
 if TYPE_CHECKING:
     from .segment import SegmentOptions
 

@@ -45,10 +45,14 @@ def _quaternion(R):
     tr = m00 + m11 + m22
     cands = jnp.stack(
         [
-            jnp.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
-            jnp.stack([R[..., 2, 1] - R[..., 1, 2], 1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
-            jnp.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1]], -1),
-            jnp.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1 - m00 - m11 + m22], -1),
+            jnp.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2],
+                       R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
+            jnp.stack([R[..., 2, 1] - R[..., 1, 2], 1 + m00 - m11 - m22,
+                       R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
+            jnp.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0],
+                       1 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1]], -1),
+            jnp.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0],
+                       R[..., 1, 2] + R[..., 2, 1], 1 - m00 - m11 + m22], -1),
         ],
         -2,
     )
@@ -106,7 +110,7 @@ def to_euler(R):
     lock = s2 < _eps(R.dtype) ** 2
     s = jnp.where(lock, 0.0, jnp.sqrt(jnp.where(lock, 1.0, s2)))
     theta = jnp.arctan2(s, R[..., 2, 2])
-    safe = lambda x: jnp.where(lock, 1.0, x)  # noqa: E731
+    safe = lambda x: jnp.where(lock, 1.0, x)
     phi_free = jnp.arctan2(safe(R[..., 1, 2]), safe(R[..., 0, 2]))
     psi_free = jnp.arctan2(safe(R[..., 2, 1]), safe(-R[..., 2, 0]))
     phi_lock = jnp.arctan2(jnp.where(lock, -R[..., 0, 1], 0.0), jnp.where(lock, R[..., 1, 1], 1.0))

@@ -14,8 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
-from .superquadric import (Superquadric, log_inside_outside_local, sample_surface, surface_grid, to_model_frame,
-                           to_trimesh)
+from .superquadric import (
+    Superquadric,
+    log_inside_outside_local,
+    sample_surface,
+    surface_grid,
+    to_model_frame,
+    to_trimesh,
+)
 
 PAPER_SCENES = ("sphere_cylinder", "two_cylinders", "occluded_block")
 ARRANGEMENTS = ("separate", "touching", "intersecting", "occluding", "mixed")
@@ -63,7 +69,7 @@ def _log_F(sq: Superquadric, pts: np.ndarray) -> np.ndarray:
 
 def _refine(sq: Superquadric, o: np.ndarray, d: np.ndarray, t0: np.ndarray, iters: int = 48) -> np.ndarray:
     """Move mesh hits t0 along rays o + t d onto the surface F = 1 (bisection); unbracketed hits are kept."""
-    g = lambda t: _log_F(sq, o + t[:, None] * d)  # noqa: E731
+    g = lambda t: _log_F(sq, o + t[:, None] * d)
     step = 1e-3 * float(np.min(np.asarray(sq.size)))
     inside = g(t0) <= 0  # a convex model's mesh is inscribed: its hits lie just inside the solid
     lo, hi = np.where(inside, t0 - step, t0), np.where(inside, t0, t0 + step)
@@ -188,7 +194,8 @@ def _rz(a):
 _TABLE_TO_CAMERA = _rx(np.radians(30)) @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) @ _rz(np.radians(35))
 
 
-def _table_part(size, epsilon, centre, rotation=np.eye(3), *, look_at=(0.0, 0.0, 0.7), distance=5.0):
+def _table_part(size, epsilon, centre, rotation=np.eye(3), *,  # noqa: B008  (only read, never written)
+                look_at=(0.0, 0.0, 0.7), distance=5.0):
     t = _TABLE_TO_CAMERA @ (np.asarray(centre, float) - look_at) + (0.0, 0.0, distance)
     return Superquadric.create(size, epsilon, rotation=_TABLE_TO_CAMERA @ rotation, translation=t)
 
@@ -363,7 +370,7 @@ OBJECTS = ("table", "chair", "mug", "lamp", "l_shape", "dumbbell", "arm")
 def _object_parts(kind: str, rng) -> list[tuple]:
     """Parts of a multi-part object in its own frame (z up, standing on z = 0, about 1 unit across):
     (half-sizes, exponents (e1, e2), centre, rotation) per part, dimensions jittered by `rng`."""
-    j = lambda *v: np.asarray(v, float) * rng.uniform(0.85, 1.18, len(v))  # noqa: E731
+    j = lambda *v: np.asarray(v, float) * rng.uniform(0.85, 1.18, len(v))
     box, cyl, ball = (0.1, 0.1), (0.1, 1.0), (1.0, 1.0)
     eye = np.eye(3)
     if kind in ("table", "chair"):

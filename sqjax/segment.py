@@ -16,8 +16,19 @@ import numpy as np
 
 from .fitting import bucket, to_superquadric
 from .rangeimage import RangeImage
-from .recovery import (NUM_PARAMS, _domain, _Domain, _fit_best, _grow, _Models, _pad_rows, _Runner, _seed,
-                       free_components, viewing_rays)
+from .recovery import (
+    NUM_PARAMS,
+    _Domain,
+    _domain,
+    _fit_best,
+    _grow,
+    _Models,
+    _pad_rows,
+    _Runner,
+    _seed,
+    free_components,
+    viewing_rays,
+)
 from .selection import SELECTORS, SelectionWeights, build_q, select
 from .superquadric import Superquadric
 

@@ -94,7 +94,7 @@ class Superquadric(eqx.Module):
         batch = size.shape[:-1]
         if rotation is None:
             rotation = so3.from_euler(jnp.asarray(euler if euler is not None else (0.0, 0.0, 0.0), dtype))
-        f = lambda v, n: jnp.broadcast_to(jnp.asarray(v, dtype), batch + (n,))  # noqa: E731
+        f = lambda v, n: jnp.broadcast_to(jnp.asarray(v, dtype), batch + (n,))
         return cls(size, f(epsilon, 2), jnp.broadcast_to(jnp.asarray(rotation, dtype), batch + (3, 3)),
                    f(translation, 3), f(taper, 2), f(bend, 2))
 
@@ -107,7 +107,7 @@ class Superquadric(eqx.Module):
     def volume(self) -> jax.Array:
         """Volume of the undeformed solid, `(...)`: 2 a1 a2 a3 e1 e2 B(e1/2 + 1, e1) B(e2/2, e2/2)."""
         e1, e2 = self.epsilon[..., 0], self.epsilon[..., 1]
-        lb = lambda x, y: jax.scipy.special.gammaln(x) + jax.scipy.special.gammaln(y) - jax.scipy.special.gammaln(x + y)  # noqa: E731
+        lb = lambda x, y: jax.scipy.special.gammaln(x) + jax.scipy.special.gammaln(y) - jax.scipy.special.gammaln(x + y)
         return 2.0 * jnp.prod(self.size, -1) * e1 * e2 * jnp.exp(lb(e1 / 2 + 1, e1) + lb(e2 / 2, e2 / 2))
 
     def to_dict(self) -> dict:

@@ -419,7 +419,8 @@ def test_old_depth_scale_convention_gets_a_hint(capsys, tmp_path):
 
 
 def test_fit_json_unwritable_fails_before_fitting(capsys, tmp_path, monkeypatch):
-    monkeypatch.setattr(importlib.import_module("sqjax.fitting"), "fit", lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")))
+    monkeypatch.setattr(importlib.import_module("sqjax.fitting"), "fit",
+                        lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")))
     pts = tmp_path / "p.xyz"
     write_points(pts, np.random.default_rng(0).normal(size=(50, 3)))
     code, _, err = run(capsys, "fit", pts, "--json", "/proc/sqjax-test.json")

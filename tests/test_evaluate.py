@@ -114,7 +114,7 @@ def test_volume_iou_identical_disjoint_shifted():
 
 
 def test_volume_iou_batch_matches_single():
-    stack = lambda *ms: jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *ms)  # noqa: E731
+    stack = lambda *ms: jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *ms)
     box = Superquadric.create((0.5, 0.3, 0.4), (0.1, 0.1), translation=(0.0, 0.0, 5.0))
     shifted = Superquadric.create((0.5, 0.3, 0.4), (0.1, 0.1), translation=(0.5, 0.0, 5.0))
     ball = Superquadric.create((0.25, 0.25, 0.25), (1.0, 1.0), translation=(0.0, 0.0, 5.0))

@@ -6,10 +6,11 @@ import struct
 
 import numpy as np
 import pytest
-from conftest import data_path
 
 from sqjax.formats import fit_pinhole, lzf_decompress, read_points, read_range_image, write_points, write_range_image
 from sqjax.rangeimage import OrthographicCamera, PinholeCamera, RangeImage
+
+from conftest import data_path
 
 CAM = PinholeCamera(50.0, 52.0, 15.5, 11.5)
 

@@ -13,7 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-_spec = importlib.util.spec_from_file_location("sqjax_fuzz", Path(__file__).resolve().parents[1] / "benchmarks" / "fuzz.py")
+_spec = importlib.util.spec_from_file_location("sqjax_fuzz",
+                                               Path(__file__).resolve().parents[1] / "benchmarks" / "fuzz.py")
 fuzz = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(fuzz)
 
@@ -52,8 +53,9 @@ def case(draw):
     if deform and np.linalg.norm(x) > 1e3 * size.max():    # deformations only near the model (fuzz.py)
         x = x * (1e3 * size.max() / np.linalg.norm(x))
     taper = np.array([draw(unit), draw(unit)]) if deform else np.zeros(2)
-    bend = np.array([10.0 ** draw(st.floats(-8, 0)) / size.max(), draw(st.floats(-3.1, 3.1))]) if deform else np.zeros(2)
-    f32 = lambda v: np.asarray(v, np.float32)[None]  # noqa: E731
+    bend = (np.array([10.0 ** draw(st.floats(-8, 0)) / size.max(), draw(st.floats(-3.1, 3.1))]) if deform
+            else np.zeros(2))
+    f32 = lambda v: np.asarray(v, np.float32)[None]
     return {"point": f32(x), "size": f32(size), "epsilon": f32(eps), "rotation": f32(R),
             "translation": f32(np.zeros(3)), "taper": f32(taper), "bend": f32(bend)}
 

@@ -16,8 +16,15 @@ import trimesh
 from PIL import Image
 
 from sqjax import export
-from sqjax.export import (GLTF_FROM_CAMERA, atomic_paths, check_writable_dir, parts_to_scene, read_segmentation,
-                          superquadric_from_dict, write_segmentation)
+from sqjax.export import (
+    GLTF_FROM_CAMERA,
+    atomic_paths,
+    check_writable_dir,
+    parts_to_scene,
+    read_segmentation,
+    superquadric_from_dict,
+    write_segmentation,
+)
 from sqjax.rangeimage import PinholeCamera, RangeImage
 from sqjax.superquadric import Superquadric
 

@@ -7,11 +7,12 @@ import json
 
 import numpy as np
 import pytest
-from conftest import data_path
 from PIL import Image
 
 from sqjax.formats import read_intrinsics, read_points, read_range_image, read_rgbd, write_range_image
 from sqjax.rangeimage import PinholeCamera, RangeImage
+
+from conftest import data_path
 
 CAM = PinholeCamera(50.0, 52.0, 15.5, 11.5)
 

@@ -8,8 +8,16 @@ import trimesh
 
 from sqjax import Superquadric, contains, inside_outside, sample_surface
 from sqjax.rangeimage import OrthographicCamera, PinholeCamera
-from sqjax.scenes import (ARRANGEMENTS, OBJECTS, PAPER_SCENES, default_camera, multipart_scene, paper_scene,
-                          random_scene, render)
+from sqjax.scenes import (
+    ARRANGEMENTS,
+    OBJECTS,
+    PAPER_SCENES,
+    default_camera,
+    multipart_scene,
+    paper_scene,
+    random_scene,
+    render,
+)
 
 SHAPE = (60, 80)
 
@@ -155,7 +163,7 @@ def test_random_scene_every_part_visible(arrangement):
         assert ((0.1 <= e) & (e <= 1.0)).all()
     _assert_on_surfaces(image, parts)
     surf = [sample_surface(p, 2000) for p in parts]
-    hits = lambda i, j: _any_inside(parts[j], surf[i]) or _any_inside(parts[i], surf[j])  # noqa: E731
+    hits = lambda i, j: _any_inside(parts[j], surf[i]) or _any_inside(parts[i], surf[j])
     if arrangement == "separate":
         assert not any(hits(i, j) for i in range(len(parts)) for j in range(i))
     if arrangement == "intersecting":
@@ -171,8 +179,9 @@ def test_random_scene_arguments():
 
 def test_render_without_embree_matches(monkeypatch):
     """The pure numpy ray caster (used when embreex is missing) gives the same image."""
-    import sqjax.scenes as scenes
     from trimesh.ray.ray_triangle import RayMeshIntersector
+
+    import sqjax.scenes as scenes
 
     parts, shape = _two_parts(), (24, 32)
     camera = default_camera(shape)
