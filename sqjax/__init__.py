@@ -31,7 +31,7 @@ _NAMES = {
 }
 _MODULES = ("evaluate", "plot", "rotation", "scenes")
 
-__all__ = sorted([*_NAMES, *_MODULES])
+__all__ = sorted([*_NAMES, *_MODULES])  # pyright: ignore[reportUnsupportedDunderAll]  (the lazy names)
 
 try:
     __version__ = version("sqjax")

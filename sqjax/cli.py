@@ -49,6 +49,7 @@ import dataclasses
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -225,7 +226,8 @@ def _npy_is_points(path: Path) -> bool:
     return a.ndim == 2 and a.shape[1] == 3
 
 
-def load_input(path, *, camera=None, ortho=None, depth_scale=None, color=None, intrinsics=None):
+def load_input(path, *, camera=None, ortho=None, depth_scale=None, color=None,
+               intrinsics=None) -> tuple[Any, str]:  # (RangeImage or (P, 3) array, its kind)
     """Read INPUT as the `segment` command does: `(RangeImage, "range_image")` or `((P, 3), "point_cloud")`.
 
     `camera`: a `PinholeCamera` (overrides a stored one); `ortho`: [pixel_size] or [pixel_size, cx, cy]
@@ -523,9 +525,9 @@ def cmd_render(args) -> int:
         write_range_image(out, image, depth_scale=args.depth_scale)  # atomic itself; the JSON follows it
     msg = f"wrote {out}: {image.shape[0]}x{image.shape[1]} range image of {args.scene!r}, {len(truth)} parts"
     if out.suffix.lower() == ".png":
-        msg += f" (16-bit depth x {args.depth_scale:g}; no labels or camera: read with --camera " \
-               f"{image.camera.fx:g},{image.camera.fy:g},{image.camera.cx:g},{image.camera.cy:g} " \
-               f"--depth-scale {args.depth_scale:g})"
+        msg += (f" (16-bit depth x {args.depth_scale:g}; no labels or camera: read with --camera "
+                f"{image.camera.fx:g},{image.camera.fy:g},{image.camera.cx:g},{image.camera.cy:g} "  # pyright: ignore[reportAttributeAccessIssue]  (scenes: pinhole)
+                f"--depth-scale {args.depth_scale:g})")
     print(msg)
     if json_path is not None:
         print(f"wrote {json_path}: true parameters")
@@ -670,7 +672,7 @@ def build_parser() -> argparse.ArgumentParser:
                 epilog="Start with 'sqjax demo'. Each command has --help.")
     p.add_argument("--version", action="version", version=f"sqjax {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)  # a parent of the sub-parsers, so of their class
     common.add_argument("--no-cache", action="store_true",
                         help="do not use the on-disk compilation cache (also: SQJAX_NO_CACHE=1); "
                         "default folder $XDG_CACHE_HOME/sqjax/jax or ~/.cache/sqjax/jax ($SQJAX_CACHE_DIR)")

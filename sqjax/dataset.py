@@ -45,8 +45,12 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .segment import SegmentOptions
 
 MARKER = "done.json"
 COLUMNS = ("name", "input", "status", "parts", "points", "seconds", "compile_seconds", "run_seconds",
@@ -81,7 +85,7 @@ class SceneResult:
 class _Config:
     """What every scene shares (sent once per task to Dask workers: keep it small and picklable)."""
 
-    options: object                   # SegmentOptions
+    options: SegmentOptions
     read: Callable | None             # path -> (data, kind); None = `read_input`
     subsample: int
     truth: Callable | None            # raw labels (H, W) -> truth labels; None = as stored
@@ -173,7 +177,7 @@ def _fingerprint(item, settings: dict) -> str:
 
 
 def _row(name, item, **kw) -> dict:
-    row = dict.fromkeys(COLUMNS)
+    row: dict[str, Any] = dict.fromkeys(COLUMNS)
     row.update(name=name, input=str(os.fspath(item)) if _is_path(item) else None, **kw)
     return row
 
@@ -256,7 +260,7 @@ def _atomic(path: Path, write) -> Path:
     return path
 
 
-def _resumed(item, name, out: Path, fingerprint: str) -> SceneResult | None:
+def _resumed(item, name, out: Path, fingerprint: str | None) -> SceneResult | None:
     marker = out / name / MARKER
     try:
         doc = json.loads(marker.read_text())
@@ -350,7 +354,7 @@ def _run_dask(todo, cfg, results, bar, workers, scheduler):
         client = Client(scheduler)
     else:
         cluster = LocalCluster(n_workers=int(workers), processes=True, threads_per_worker=1,
-                               dashboard_address=None)
+                               dashboard_address=None)  # pyright: ignore[reportArgumentType]  (None: no dashboard)
         client = Client(cluster)
     try:
         futures = {client.submit(run_scene, item, name, cfg, fp, pure=False): (i, item, name)

@@ -55,6 +55,7 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -164,7 +165,8 @@ def part_meshes(parts, resolution: int = 32) -> list:
     meshes = []
     for part, c in zip(parts, colors):
         m = to_trimesh(_superquadric(part), resolution)
-        m.visual.vertex_colors = np.tile(np.append(c, 255).astype(np.uint8), (len(m.vertices), 1))
+        m.visual.vertex_colors = np.tile(  # pyright: ignore[reportAttributeAccessIssue, reportOptionalMemberAccess]
+            np.append(c, 255).astype(np.uint8), (len(m.vertices), 1))
         meshes.append(m)
     return meshes
 
@@ -223,7 +225,7 @@ def labelled_points_to_ply(points, labels, path) -> Path:
 # JSON
 
 
-def _jsonable(v):
+def _jsonable(v) -> Any:
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):

@@ -127,7 +127,7 @@ class Status(enum.IntFlag):
     def describe(cls, code) -> str:
         """Human-readable names of the flags set in one status code, e.g. "MAX_STEPS|BOUND_ACTIVE"."""
         code = int(code)
-        return "OK" if code == 0 else "|".join(f.name for f in cls if f.value and code & f.value)
+        return "OK" if code == 0 else "|".join(f.name for f in cls if f.value and code & f.value)  # pyright: ignore[reportCallIssue, reportArgumentType]  (members have names)
 
 
 _FAILED = Status.DEGENERATE | Status.TOO_FEW_POINTS | Status.NONFINITE
@@ -525,7 +525,7 @@ def _multistart(points, mask, opts):
 
     def pick(out):
         scores = _robust_scores(out[0], sub_pts, sub_mask, opts) if opts.robust else None
-        return _best(*out, scores)
+        return _best(*out, scores=scores)
 
     best = pick(run(_initial_states(points, mask, opts), opts.max_steps))
     second = run(_switched(best[0]), half)
@@ -547,7 +547,7 @@ def _solve(inputs):
     weight = mask.astype(points.dtype)
     if opts.robust:
         state, cost, conv, weight = _reweighted(state, points, mask, opts)
-    return _join(*state, opts), (cost, conv, weight)
+    return _join(*state, opts=opts), (cost, conv, weight)
 
 
 def _stationarity(theta, aux, inputs):
@@ -669,7 +669,7 @@ def bucket(n: int, minimum: int = 32) -> int:
 
 
 def _is_traced(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
+    return isinstance(x, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue]  (jax imports jax.core)
 
 
 def _nanmedian(xp, v, axis):
@@ -791,7 +791,7 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     dtype = jnp.dtype(dtype or (points.dtype if _is_traced(points) else jnp.float32))
     if dtype not in (jnp.float32, jnp.float64):
         raise ValueError(f"fit: dtype must be float32 or float64, got {dtype}")
-    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]
         raise ValueError("fit: float64 requested but JAX x64 is off; call jax.config.update('jax_enable_x64', True)")
     if far_factor is not None and not far_factor > 1.0:
         raise ValueError(f"fit: far_factor must be > 1 or None, got {far_factor}")
@@ -856,7 +856,8 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     cost = xp.where(finite_out, cost, xp.inf)
     dist = xp.where(finite_out[:, None] & msk, dist, 0.0)
     weight = xp.where(msk, weight, 0.0)
-    res = Fit(sq, cost, dist, converged, xp.sum(msk, -1).astype(xp.int32), weight.astype(dtype), status)
+    res = Fit(sq, cost, dist, converged, xp.sum(msk, -1).astype(xp.int32),  # pyright: ignore[reportArgumentType]  (numpy off-trace)
+              weight.astype(dtype), status)  # pyright: ignore[reportArgumentType]
     if single:
         res = jax.tree.map(lambda v: v[0], res)
     # device_put, not jnp.asarray: the latter compiles a small "stage" op for every new shape

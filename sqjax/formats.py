@@ -24,6 +24,7 @@ import warnings
 import zipfile
 import zlib
 from pathlib import Path
+from typing import Any, overload
 
 import numpy as np
 
@@ -34,7 +35,7 @@ _PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("U", 1): "u1", ("U", 2): "<u2",
 _READ_ERRORS = (ValueError, EOFError, struct.error, zipfile.BadZipFile, zlib.error, pickle.UnpicklingError)
 
 
-def lzf_decompress(data: bytes, size: int) -> bytes:
+def lzf_decompress(data: bytes | memoryview, size: int) -> bytes:
     """Decompress a raw LZF stream (liblzf, as in PCD `binary_compressed`) to exactly `size` bytes."""
     src, out, ip, op, n = memoryview(data), bytearray(size), 0, 0, len(data)
     try:
@@ -255,6 +256,10 @@ def _png_image(path):
         return np.asarray(im), None, None, None, None
 
 
+@overload
+def check_depth_scale(depth_scale: None, what: str = ...) -> None: ...
+@overload
+def check_depth_scale(depth_scale: float | str, what: str = ...) -> float: ...
 def check_depth_scale(depth_scale, what: str = "depth_scale"):
     """Refuse a `depth_scale` that is not finite and >= 1 (Open3D's convention: stored units per metre)."""
     if depth_scale is None:
@@ -280,7 +285,8 @@ def _range_image(parts, camera, scale):
     camera = stored if camera is None else camera
     if camera is None and points is None:
         raise ValueError("no camera stored in the file; pass camera=PinholeCamera(...) or OrthographicCamera(...)")
-    return RangeImage(depth, fit_pinhole(points) if camera is None else camera, labels, points, colors)
+    return RangeImage(depth, fit_pinhole(points) if camera is None else camera,  # pyright: ignore[reportArgumentType]  (points: checked above)
+                      labels, points, colors)
 
 
 def _write_npz(path, image: RangeImage, **_):
@@ -367,7 +373,7 @@ _MESH = "is a mesh, not a range image; use read_points for its vertices (or rend
 _IMAGE = "is a range image; use read_range_image"
 _TO_IMAGE, _TO_POINTS = "use .npz, .pcd or .png", "use .npy, .ply or .xyz"
 # extension -> (read_range_image, read_points, write_range_image, write_points); a str explains a refusal.
-_FORMATS = {
+_FORMATS: dict[str, tuple[Any, Any, Any, Any]] = {  # per extension: a handler or why there is none
     ".npy": (_npy_image, _npy_points, "use .npz to keep the camera", _write_npy),
     ".npz": (_npz_image, _IMAGE, _write_npz, _TO_POINTS),
     ".png": (_png_image, _IMAGE, _write_png, _TO_POINTS),
@@ -380,7 +386,7 @@ _FORMATS = {
 }
 
 
-def _handler(path, slot: int, what: str):
+def _handler(path, slot: int, what: str) -> tuple[Path, Any]:
     path, reading = Path(os.fspath(path)), slot < 2
     ext = path.suffix.lower()
     if ext not in _FORMATS:
@@ -474,11 +480,11 @@ def _intrinsics(path_or_dict):
             fx, fy, cx, cy = m[0, 0], m[1, 1], m[0, 2], m[1, 2]
         if None in (fx, fy, cx, cy):
             raise ValueError(f"needs fx, fy, cx, cy (or an intrinsic_matrix); has {', '.join(sorted(d)) or 'nothing'}")
-        cam = PinholeCamera(float(fx), float(fy), float(cx), float(cy))
+        cam = PinholeCamera(float(fx), float(fy), float(cx), float(cy))  # pyright: ignore[reportArgumentType]  (no None: checked)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{where}: bad intrinsics ({e})") from None
     size = (pick("height", "img_height"), pick("width", "img_width"))
-    return cam, (tuple(int(v) for v in size) if None not in size else None)
+    return cam, (tuple(int(v) for v in size) if None not in size else None)  # pyright: ignore[reportArgumentType]
 
 
 def read_rgbd(depth, color=None, *, intrinsics=None, camera: Camera | None = None,

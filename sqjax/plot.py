@@ -261,7 +261,7 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
             if k == 2:   # the final parts: the colours of labels.png
                 colors = label_colors(n_final)
             else:        # earlier models: the colour of the final part they overlap most
-                idx = _match_colors(lab, final_labels, len(sqs), n_final)
+                idx = _match_colors(lab, final_labels, len(sqs), n_final)  # pyright: ignore[reportArgumentType]
                 colors = label_colors(int(idx.max()) + 1)[idx] if idx.size else np.zeros((0, 3))
             rgb = _paint(lab, shade, colors, image.valid)
             ax.imshow(rgb, interpolation="nearest")

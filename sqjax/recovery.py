@@ -204,7 +204,7 @@ def _knn(P, k, queries=None):
     """Indices (Q, k) of the k nearest points of P (P, 3) to each query (Q, 3), nearest first, by a
     k-d tree (O(P log P)). queries=None: the neighbours of every point of P, itself excluded (also when
     duplicates tie with it). Fewer than k points: the columns past P are -1."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
 
     own = queries is None
     Q = P if own else queries
@@ -389,7 +389,8 @@ class _Runner:
             t = np.einsum("pj,pj->p", w, v)                   # > 0: the model's centre is in front of p
             perp2 = np.einsum("pj,pj->p", w, w) - t * t
             cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > self.tau))
-            pairs_m.append(np.full(cand.size, i)), pairs_p.append(cand)
+            pairs_m.append(np.full(cand.size, i))
+            pairs_p.append(cand)
         model, point = np.concatenate(pairs_m), np.concatenate(pairs_p)
         if model.size == 0:
             return out
@@ -493,7 +494,7 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
     for th0 in starts:
         theta = run.fit(regions, th0, steps)
         ok = np.isfinite(theta).all(1)
-        theta = np.where(ok[:, None], theta, 0.0)
+        theta = np.where(ok[:, None], theta, 0.0)  # pyright: ignore[reportIndexIssue]  (ok: an array, not np.bool)
         d, _, _ = run.distances(theta, model, point)
         explained = np.bincount(model, d < run.tau, len(regions)) / sizes
         rms = np.sqrt(np.bincount(model, np.minimum(d, 1e3).astype(np.float64) ** 2, len(regions)) / sizes)
@@ -504,7 +505,7 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
         else:
             for i in np.flatnonzero(score > best[2]):
                 best[0][i], best[1][i], best[2][i] = theta[i], d[i], score[i]
-    return tuple(best)
+    return tuple(best)  # pyright: ignore[reportArgumentType]  (there is always a start)
 
 
 def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
@@ -530,7 +531,7 @@ def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
                 k = noise_exponent(depth, np.array([_plane_residual(run.dom.points[seeds[i]]) for i in fitted]))
                 if k > 0:
                     run.set_noise_model(k, float(np.median(np.abs(run.dom.points[:, 2]))))
-                    sigma = sigma / (depth / run.dom.noise_model[1]) ** k
+                    sigma = sigma / (depth / run.dom.noise_model[1]) ** k  # pyright: ignore[reportOptionalSubscript]
             run.set_noise(max(run.noise, float(np.median(sigma))))
             model, point = _pairs(seeds)
             d = _split(run.distances(theta, model, point)[0], model, len(seeds))
@@ -581,7 +582,7 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
     if act.size == 0:
         return
     R = models.regions[act]
-    cand = run.dom.dilate(R, opts.rings) & ~R
+    cand = run.dom.dilate(R, opts.rings) & ~R  # pyright: ignore[reportArgumentType]  (segment() sets rings)
     k, p = np.nonzero(cand)
     d, inside, _ = run.distances(models.theta[act], k, p)
     factor = np.where(models.loose[act], opts.admit_factor, 1.0)

@@ -64,7 +64,7 @@ def _log_F(sq: Superquadric, pts: np.ndarray) -> np.ndarray:
         n = len(pts)
         pad = np.zeros((max(256, 1 << (n - 1).bit_length()) - n, 3))  # few buckets: few compilations
         return np.asarray(_log_F_deformed(sq, np.concatenate([pts, pad + np.asarray(sq.translation)])), float)[:n]
-    return _log_F_np(*(np.asarray(v, float) for v in (sq.size, sq.epsilon, sq.rotation, sq.translation)), pts)
+    return _log_F_np(*(np.asarray(v, float) for v in (sq.size, sq.epsilon, sq.rotation, sq.translation)), pts=pts)
 
 
 def _refine(sq: Superquadric, o: np.ndarray, d: np.ndarray, t0: np.ndarray, iters: int = 48) -> np.ndarray:
@@ -333,14 +333,14 @@ def random_scene(seed: int, *, n_parts=(2, 6), shape=(120, 160), noise: float = 
     if arrangement not in ARRANGEMENTS:
         raise ValueError(f"random_scene: arrangement must be one of {ARRANGEMENTS}, got {arrangement!r}")
     lo, hi = (n_parts, n_parts) if np.isscalar(n_parts) else n_parts
-    if not 1 <= lo <= hi:
+    if not 1 <= lo <= hi:  # pyright: ignore[reportOperatorIssue]  (np.isscalar's TypeGuard loses the int)
         raise ValueError(f"random_scene: n_parts must be >= 1 (or a range lo <= hi), got {n_parts}")
     shape = tuple(int(s) for s in shape)
     camera, rng = default_camera(shape), np.random.default_rng([seed, ARRANGEMENTS.index(arrangement)])
     relations = ARRANGEMENTS[:4]
     if min_pixels is None:
         min_pixels = max(20, round(150 * shape[0] * shape[1] / (120 * 160)))
-    n = int(rng.integers(lo, hi + 1))
+    n = int(rng.integers(lo, hi + 1))  # pyright: ignore[reportCallIssue, reportArgumentType, reportOperatorIssue]
     for _ in range(max_tries):
         placed: list[_Body] = []
         for _k in range(n):

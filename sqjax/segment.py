@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import NoReturn
 
 import jax
 import jax.numpy as jnp
@@ -107,7 +108,7 @@ class SegmentOptions:
     free_space: float = 0.0
 
     def __post_init__(self):
-        def bad(name, want):
+        def bad(name, want) -> NoReturn:
             raise ValueError(f"SegmentOptions: {name} must be {want}, got {getattr(self, name)!r}")
 
         def number(name, lo=None, hi=None, *, integer=False, optional=False, lo_open=False):
@@ -256,7 +257,9 @@ def _merge(run: _Runner, models: _Models, opts):
         if np.isfinite(score[k]) and min(each) >= opts.keep_fraction:
             region = np.zeros(run.P, bool)
             region[ids[inl]] = True
-            keep.append(k), regions.append(region), dist.append(d[k][inl])
+            keep.append(k)
+            regions.append(region)
+            dist.append(d[k][inl])
     if not keep:
         return models
     out = models.concat(_Models(theta[keep], np.stack(regions), dist))
@@ -514,9 +517,9 @@ def _unbatch(sq: Superquadric) -> list:
     return [jax.tree.map(lambda v, i=i: jnp.asarray(v[i]), leaves) for i in range(leaves.size.shape[0])]
 
 
-def _on_jax_event(event, duration, **_):
+def _on_jax_event(event, duration_secs, **_):
     if event.startswith("/jax/core/compile/"):
-        _COMPILE_SECONDS[0] += duration
+        _COMPILE_SECONDS[0] += duration_secs
 
 
 _COMPILE_SECONDS = [0.0]

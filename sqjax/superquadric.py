@@ -32,7 +32,8 @@ def _log_cap(dtype):
 def _check_fields(**fields):
     """Host-side checks of `Superquadric.create`'s concrete arguments; a ValueError names the field."""
     def concrete(v):
-        return v is not None and not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(v))
+        return v is not None and not any(isinstance(x, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue]
+                                         for x in jax.tree.leaves(v))
 
     vals = {k: np.asarray(v, np.float64) for k, v in fields.items() if concrete(v)}
     last = {"size": 3, "epsilon": 2, "euler": 3, "translation": 3, "taper": 2, "bend": 2}
@@ -417,7 +418,7 @@ def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.
         centres = mesh.triangles_center
         facing = np.einsum("ij,ij->i", mesh.face_normals, np.asarray(viewpoint, float) - centres) > 0
         mesh = mesh.submesh([np.nonzero(facing)[0]], append=True)
-    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
+    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))  # pyright: ignore[reportAssignmentType]
     pts = np.asarray(_onto_surface(sq, jnp.asarray(pts, sq.size.dtype)), float)
     return pts + noise * rng.standard_normal((n, 3))
 
