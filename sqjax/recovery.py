@@ -55,7 +55,7 @@ class _Domain:
     shape: tuple                  # label output shape
     edges: np.ndarray | None = None   # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
     views: np.ndarray | None = None   # (P, 3) unit viewing rays (images), None = unknown (clouds)
-    seed_size: int = 0                # points in a full seed window
+    seed_size: int = 0                # points in the smallest seed window (the smallest part seeded)
     noise_model: tuple | None = None  # (k, z_ref): local noise / reference noise = (z / z_ref)^k
 
     def dilate(self, regions, rings: int):
@@ -137,7 +137,7 @@ def noise_scale(points: np.ndarray, k: float, z_ref: float) -> np.ndarray:
     return (np.abs(points[:, 2]) / z_ref) ** k
 
 
-def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_seed) -> _Domain:
+def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_seed, subdivide=True) -> _Domain:
     H, W = image.shape
     valid = image.valid
     pts = image.points
@@ -163,16 +163,50 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
     cut = (nb >= 0) & jump
     nb[cut] = -1
     broken = cut.any(1)
-    seeds = []
-    for r0 in range(0, max(H - window, 0) + 1, stride):
-        for c0 in range(0, max(W - window, 0) + 1, stride):
-            ids = idmap[r0 : r0 + window, c0 : c0 + window].ravel()
-            ids = ids[ids >= 0]
-            if ids.size >= min_seed and not broken[ids].any():
-                seeds.append(ids)
+    whole, quadrants, smallest = _seed_windows(idmap, broken, window, stride, min_seed, subdivide)
     edges = np.zeros((len(offs), H * W), bool)
     edges[:, flat] = (nb >= 0).T
-    return _Domain(P, nb, seeds, flat, (H, W), edges.reshape(len(offs), H, W), viewing_rays(image, P), window * window)
+    return _Domain(P, nb, whole + quadrants, flat, (H, W), edges.reshape(len(offs), H, W), viewing_rays(image, P),
+                   smallest * smallest)
+
+
+def _seed_windows(idmap, broken, window: int, stride: int, min_seed: int, subdivide: bool) -> tuple[list, list, int]:
+    """Seed windows of the (H, W) pixel grid `idmap` (point index, -1 = invalid) as index arrays.
+
+    A `window` x `window` window every `stride` pixels is a seed when it holds `min_seed` valid pixels
+    and none of them touches a depth discontinuity (`broken` (P,) bool). With `subdivide`, a window
+    that fails is split into its four quadrants, each tried the same way (a quadtree), down to the
+    smallest window that can hold `min_seed` pixels: parts smaller than a window, and the
+    surfaces between the depth edges of a cluttered scene, still get seeds where whole windows do not
+    fit, while surfaces that whole windows cover get no extra hypotheses.
+
+    Returns the whole windows (row-major), the quadrants, and the side of the smallest window among
+    them (`window` if none)."""
+    H, W = idmap.shape
+    smallest = int(np.ceil(np.sqrt(min_seed)))
+    whole, parts, tried, sides = [], [], set(), [window]
+
+    def visit(r0, c0, w):
+        if (r0, c0, w) in tried:
+            return
+        tried.add((r0, c0, w))
+        ids = idmap[r0 : r0 + w, c0 : c0 + w].ravel()
+        ids = ids[ids >= 0]
+        if ids.size < min_seed:
+            return
+        if not broken[ids].any():
+            (whole if w == window else parts).append(ids)
+            sides.append(w)
+        elif subdivide and w // 2 >= smallest:
+            h = w // 2
+            for dr in (0, w - h):
+                for dc in (0, w - h):
+                    visit(r0 + dr, c0 + dc, h)
+
+    for r0 in range(0, max(H - window, 0) + 1, stride):
+        for c0 in range(0, max(W - window, 0) + 1, stride):
+            visit(r0, c0, window)
+    return whole, parts, min(sides)
 
 
 def viewing_rays(image: RangeImage, P: np.ndarray) -> np.ndarray:
@@ -629,7 +663,8 @@ def _domain(data, opts: SegmentOptions, k: int):
         window = opts.window or int(np.clip(round(min(H, W) / 12), 4, 32))
         window = min(window, H, W)
         stride = opts.stride or max(window // 2, 1)
-        dom = _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points)
+        dom = _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points,
+                            opts.subdivide)
         if opts.noise_exponent:   # else the seeds estimate it (`_seed`), or it is 0
             dom.noise_model = (opts.noise_exponent, float(np.median(np.abs(dom.points[:, 2]))))
         return dom, noise, tau
