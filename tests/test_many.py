@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import importlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +24,12 @@ SHAPE = (60, 80)
 
 @pytest.fixture(scope="module")
 def cache_dir(tmp_path_factory):
-    """JAX's persistent compilation cache, set before this process compiles anything."""
+    """JAX's persistent compilation cache of this process: the one the test run set (tests/conftest.py)
+    if any, else a fresh one, set before this process compiles anything (JAX picks its folder once)."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return Path(jax.config.jax_compilation_cache_dir)
     path = tmp_path_factory.mktemp("jax-cache")
     _configure_jax(str(path))
     return path
