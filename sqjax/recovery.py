@@ -184,7 +184,7 @@ def _seed_windows(idmap, broken, window: int, stride: int, min_seed: int, subdiv
     them (`window` if none)."""
     H, W = idmap.shape
     smallest = int(np.ceil(np.sqrt(min_seed)))
-    whole, parts, tried, sides = [], [], set(), [window]
+    whole, quadrants, tried, sides = [], [], set(), [window]
 
     def visit(r0, c0, w):
         if (r0, c0, w) in tried:
@@ -195,7 +195,7 @@ def _seed_windows(idmap, broken, window: int, stride: int, min_seed: int, subdiv
         if ids.size < min_seed:
             return
         if not broken[ids].any():
-            (whole if w == window else parts).append(ids)
+            (whole if w == window else quadrants).append(ids)
             sides.append(w)
         elif subdivide and w // 2 >= smallest:
             h = w // 2
@@ -206,7 +206,7 @@ def _seed_windows(idmap, broken, window: int, stride: int, min_seed: int, subdiv
     for r0 in range(0, max(H - window, 0) + 1, stride):
         for c0 in range(0, max(W - window, 0) + 1, stride):
             visit(r0, c0, window)
-    return whole, parts, min(sides)
+    return whole, quadrants, min(sides)
 
 
 def viewing_rays(image: RangeImage, P: np.ndarray) -> np.ndarray:
