@@ -74,6 +74,8 @@ def _parse(argv):
     ap.add_argument("--out", default="benchmarks/out/fit.json")
     ap.add_argument("--suites", nargs="+", default=["speed", "outliers", "loop", "slabs", "deform"],
                     choices=["speed", "outliers", "loop", "slabs", "deform"])
+    ap.add_argument("--residual", default="distance", choices=["distance", "size_weighted"],
+                    help="FitOptions.residual of every sqjax fit (the scipy baseline keeps eq. 7)")
     ap.add_argument("--outlier-k", type=int, default=200, help="problems per outlier fraction")
     ap.add_argument("--loop", type=int, default=200, help="problems (each with its own N) in the loop suite")
     args = ap.parse_args(argv)
@@ -270,7 +272,8 @@ def suite_outliers(args, results):
         pts = with_outliers(clean, frac, seed=int(frac * 100))
         sp_rate, sp_iou = _scipy_rate(pts[:S], truth[:S])
         for robust in (True, False):
-            first, steady, out = time_sqjax(pts, FitOptions(robust=robust), "float32", args.seconds)
+            first, steady, out = time_sqjax(pts, FitOptions(robust=robust, residual=args.residual), "float32",
+                                            args.seconds)
             sc = iou(truth, out.superquadric)
             row = {"suite": "outliers", "fraction": frac, "robust": robust, "k": K, "n": n,
                    "iou_median": float(np.median(sc)), "gross_failures": float(np.mean(sc < 0.5)),
@@ -291,13 +294,13 @@ def suite_loop(args, results):
     t0 = time.perf_counter()
     fits = []
     for _, p in data:
-        out = sqjax.fit(p[0])
+        out = sqjax.fit(p[0], residual=args.residual)
         jax.block_until_ready(out)
         fits.append(out.superquadric)
     total = time.perf_counter() - t0
     t0 = time.perf_counter()
     for _, p in data:
-        jax.block_until_ready(sqjax.fit(p[0]))
+        jax.block_until_ready(sqjax.fit(p[0], residual=args.residual))
     warm = time.perf_counter() - t0
     stacked = jax.tree.map(lambda *v: np.stack(v), *fits)
     sc = iou(truth, stacked)
@@ -339,7 +342,7 @@ def slab_problems(n=400, seed=0):
 def suite_slabs(args, results):
     truth, pts = slab_problems()
     for robust in (True, False):
-        out = sqjax.fit(pts, robust=robust)
+        out = sqjax.fit(pts, robust=robust, residual=args.residual)
         size = np.asarray(out.superquadric.size)
         R = np.asarray(out.superquadric.rotation)
         thick = np.array([size[k][np.argmax(np.abs(R[k][2]))] for k in range(len(SLABS))])   # along world z
@@ -360,7 +363,7 @@ def suite_slabs(args, results):
 def suite_deform(args, results):
     K = 32 if args.quick else 100
     truth, pts = problems(200, K, seed=15)
-    out = sqjax.fit(pts, deform=True)
+    out = sqjax.fit(pts, deform=True, residual=args.residual)
     taper = np.abs(np.asarray(out.superquadric.taper)).max(-1)
     k = np.asarray(out.superquadric.bend)[:, 0] * np.asarray(out.superquadric.size).max(-1)
     sc = iou(truth, out.superquadric)
@@ -379,7 +382,7 @@ def main():
                            "python": platform.python_version(), "jax": jax.__version__,
                            "backend": jax.default_backend()},
                "command": "python " + " ".join([sys.argv[0]] + sys.argv[1:]), "date": time.strftime("%Y-%m-%d"),
-               "rows": [], "scipy": [], "suites": []}
+               "residual": args.residual, "rows": [], "scipy": [], "suites": []}
     for name in ("outliers", "loop", "slabs", "deform"):
         if name in args.suites:
             globals()[f"suite_{name}"](args, results)
@@ -399,7 +402,8 @@ def main():
               f"IoU median {srow['iou_median']:.3f}  gross {srow['gross_failures']:.0%}", flush=True)
         for dtype in args.dtypes:
             for mode in ("multistart", "single"):
-                options = FitOptions(multistart=mode == "multistart", robust=False)   # fit()'s default
+                options = FitOptions(multistart=mode == "multistart", robust=False,   # fit()'s default
+                                     residual=args.residual)
                 for k in args.ks:
                     first, steady, out = time_sqjax(pts[:k], options, dtype, args.seconds)
                     scores = iou(truth[:k], out.superquadric)

