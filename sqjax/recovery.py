@@ -19,7 +19,7 @@ import numpy as np
 
 from . import rotation as so3
 from .fitting import FitOptions, bucket, fit_padded
-from .rangeimage import OrthographicCamera, RangeImage
+from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
 from .superquadric import log_inside_outside_and_gradient
 
 if TYPE_CHECKING:
@@ -57,6 +57,7 @@ class _Domain:
     views: np.ndarray | None = None   # (P, 3) unit viewing rays (images), None = unknown (clouds)
     seed_size: int = 0                # points in the smallest seed window (the smallest part seeded)
     noise_model: tuple | None = None  # (k, z_ref): local noise / reference noise = (z / z_ref)^k
+    void_rays: np.ndarray | None = None   # (Q, 3) unit viewing rays of the pixels with no return (pinhole images)
 
     def dilate(self, regions, rings: int):
         """Regions (M, P) bool grown by `rings` steps along the adjacency.
@@ -166,8 +167,12 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
     whole, quadrants, smallest = _seed_windows(idmap, broken, window, stride, min_seed, subdivide)
     edges = np.zeros((len(offs), H * W), bool)
     edges[:, flat] = (nb >= 0).T
+    void = None
+    if isinstance(image.camera, PinholeCamera):      # the camera saw no surface along these rays
+        rays = image.camera.rays((H, W))[~valid]
+        void = rays / np.linalg.norm(rays, axis=1, keepdims=True)
     return _Domain(P, nb, whole + quadrants, flat, (H, W), edges.reshape(len(offs), H, W), viewing_rays(image, P),
-                   smallest * smallest)
+                   smallest * smallest, void_rays=void)
 
 
 def _seed_windows(idmap, broken, window: int, stride: int, min_seed: int, subdivide: bool) -> tuple[list, list, int]:
@@ -440,6 +445,42 @@ class _Runner:
                                                     jnp.asarray(pi), jnp.asarray(mg, self.dtype)))[:m]
         return np.bincount(model[hit], minlength=M)
 
+    def void_violations(self, theta) -> np.ndarray:
+        """(M,) for models theta (M, 11): the pixels with no return (`_Domain.void_rays`) whose viewing
+        ray passes through the model (`_free_space` along the ray's chord of the bounding sphere). The
+        camera saw no surface there, so a model there is contradicted. Pinhole images only: zeros
+        otherwise."""
+        M = len(theta)
+        out = np.zeros(M, np.int64)
+        v = self.dom.void_rays
+        if v is None or M == 0 or len(v) == 0:
+            return out
+        o = -self.centre                                   # the camera, in the runner's frame
+        c = theta[:, 8:11]
+        radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, 0:3]), -1))
+        pairs_m, ends, dirs = [], [], []
+        for i in range(M):
+            t = (c[i] - o) @ v.T                            # along each ray to the model's centre
+            perp2 = np.sum((c[i] - o) ** 2) - t * t
+            cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > 0))
+            pairs_m.append(np.full(cand.size, i))
+            ends.append(o + (t[cand] + radius[i])[:, None] * v[cand])   # behind the sphere, on the ray
+            dirs.append(v[cand])
+        model, end, ray = np.concatenate(pairs_m), np.concatenate(ends), np.concatenate(dirs)
+        if model.size == 0:
+            return out
+        theta_d = np.asarray(theta, np.dtype(self.dtype))
+        n = min(_PAIRS, bucket(model.size, 1024))
+        hit = np.zeros(model.size, bool)
+        for s in range(0, model.size, n):
+            m = min(n, model.size - s)
+            mi, pts, rays = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
+            mi[:m], pts[:m], rays[:m] = model[s : s + m], end[s : s + m], ray[s : s + m]
+            hit[s : s + m] = np.asarray(_free_space(jnp.asarray(theta_d[mi]), jnp.asarray(pts, self.dtype),
+                                                    jnp.asarray(rays, self.dtype), jnp.arange(n, dtype=jnp.int32),
+                                                    jnp.zeros(n, self.dtype)))[:m]
+        return np.bincount(model[hit], minlength=M)
+
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None.
@@ -451,7 +492,7 @@ class _Runner:
         cap = bucket(self.opts.max_points, 32)
         small = max(min(r.size, self.opts.max_points) for r in regions) <= 128
         N, Kb = (min(128, cap) if small else cap), batch_bucket(K)
-        opts = FitOptions(max_steps=steps, multistart=theta0 is None)
+        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=False)   # growth extrapolates
         pts = np.zeros((Kb, N, 3))
         msk = np.zeros((Kb, N), bool)
         for i, r in enumerate(regions):
@@ -481,18 +522,21 @@ def _dilate(regions, neighbours, rings):
 # the recover-and-select loop
 
 
-def _starts(points: np.ndarray, regions: list) -> np.ndarray:
+def _starts(points: np.ndarray, regions: list, origin: np.ndarray | None = None) -> np.ndarray:
     """Starting models (C=3, K, 11) for point sets given as index arrays: the moment ellipsoid of
     Solina & Bajcsy, and a thick ellipsoid and box.
 
     Axes from the central second moments (z = the direction of least spread, the surface normal of a
     patch), half-sizes from the extents, the thickness floored at half the mean lateral half-size.
-    The floor matters: on a nearly planar patch the size-weighted cost (eq. 7) is smallest for a
-    slab as thin as the noise, which explains the points badly; a thick start finds the solid.
+    The floor matters: a thin start lies on the patch's own mid-plane, and a solid is better found
+    from a thick one. With the camera at `origin` (images), a thick start's centre lies behind the
+    patch, so that the patch is its front face (one view sees the side towards the camera); a start
+    with the points on its mid-plane is a saddle of the distances (their gradient has no component
+    along the normal there), which an exactly planar patch never leaves.
     """
     K = len(regions)
     R = np.zeros((K, 3, 3))
-    centre, half, thin = np.zeros((K, 3)), np.zeros((K, 3)), np.zeros((K, 3))
+    centre, half, thin, back = np.zeros((K, 3)), np.zeros((K, 3)), np.zeros((K, 3)), np.zeros((K, 3))
     for i, ids in enumerate(regions):
         q = points[ids]
         c = q.mean(0)
@@ -506,10 +550,13 @@ def _starts(points: np.ndarray, regions: list) -> np.ndarray:
         h = h.copy()
         h[2] = max(h[2], 0.25 * (h[0] + h[1]))
         R[i], centre[i], half[i] = V, c + V @ ((lo + hi) / 2), h
+        if origin is not None:                      # away from the camera, by the added thickness
+            n = V[:, 2] * (1.0 if np.dot(centre[i] - origin, V[:, 2]) >= 0 else -1.0)
+            back[i] = n * (h[2] - thin[i, 2])
     w = np.asarray(_log_rotations(jnp.asarray(_pad_rows(R, bucket(K, 32), np.eye(3)))), np.float64)[:K]
     out = [np.concatenate([np.log(np.maximum(thin, 1e-3 * thin.max(1, keepdims=True))), np.ones((K, 2)), w, centre], 1)]
     for e in (1.0, 0.3):
-        out.append(np.concatenate([np.log(half), np.full((K, 2), e), w, centre], 1))
+        out.append(np.concatenate([np.log(half), np.full((K, 2), e), w, centre + back], 1))
     return np.stack(out)
 
 
@@ -524,7 +571,8 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
     best = None
     model, point = _pairs(regions)
     sizes = np.array([r.size for r in regions])
-    starts = list(_starts(run.host_points, regions)) + ([None] if multistart else [])
+    origin = -run.centre if run.dom.views is not None else None     # the camera, in the runner's frame
+    starts = list(_starts(run.host_points, regions, origin)) + ([None] if multistart else [])
     for th0 in starts:
         theta = run.fit(regions, th0, steps)
         ok = np.isfinite(theta).all(1)

@@ -56,7 +56,9 @@ class SegmentOptions:
       explains the data, grow those seeds and select among old and new (parts whose hypotheses lost
       early to a neighbour's). 0 = the paper's single pass.
     - `merge`: try joining selected models whose union one superquadric explains (occlusion splits):
-      `keep_fraction` of each of the two regions within tau.
+      `keep_fraction` of each of the two regions within tau, and (range images) the union's model
+      fills no more space the camera saw through (points behind it, pixels with no return) than the
+      two parts do, beyond 1 - `keep_fraction` of its points.
     - `min_exclusive`: after the final selection, a model explaining less than this share of its
       region alone (the rest is also explained by others) is dropped as redundant.
     - `subsample`: range images are segmented at every `subsample`-th row and column, then every pixel
@@ -270,6 +272,14 @@ def _merge(run: _Runner, models: _Models, opts):
             keep.append(k)
             regions.append(region)
             dist.append(d[k][inl])
+    if keep:
+        # Visibility: the union's model must not fill space the camera saw through (points behind it,
+        # or no return at all) much more than its two parts do; a box under a table, whose side face
+        # holds the legs, explains both pieces but fills the free space between the legs.
+        seen = lambda th: run.free_space_violations(th) + run.void_violations(th)
+        extra = seen(theta[keep]) - seen(models.theta).reshape(-1)[np.array([pairs[k] for k in keep])].sum(1)
+        ok = extra <= (1.0 - opts.keep_fraction) * np.array([r.sum() for r in regions])
+        keep, regions, dist = ([x for x, good in zip(a, ok) if good] for a in (keep, regions, dist))
     if not keep:
         return models
     out = models.concat(_Models(theta[keep], np.stack(regions), dist))
@@ -432,12 +442,14 @@ def _finish(run: _Runner, models: _Models):
         near[~np.isfinite(d)] = np.inf
         best = np.argmin(near, 0)
         # Two almost coincident surfaces can still leave a speckle: a piece of a label smaller than a
-        # seed window goes to the next nearest model that explains it.
+        # seed window goes to the next nearest model that explains it (if none does, it stays).
         for i in range(len(models.theta)):
             for piece in free_components(has & (best == i), run.dom.neighbours, 1, run.dom.seed_size - 1):
-                near[i, piece] = np.inf
-                best[piece] = np.argmin(near[:, piece], 0)
-                has[piece] = np.isfinite(near[:, piece].min(0))
+                alt = near[:, piece]
+                alt[i] = np.inf
+                moved = np.isfinite(alt.min(0))
+                near[i, piece[moved]] = np.inf
+                best[piece[moved]] = np.argmin(alt[:, moved], 0)
         # A model whose every pixel went to a nearer one is not a part of the label image: drop it, so
         # that parts and labels agree (label i + 1 = parts[i], and every part owns labelled pixels).
         count = np.bincount(best[has], minlength=len(models.theta))
