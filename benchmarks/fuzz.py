@@ -29,7 +29,7 @@ import numpy as np
 from sqjax import superquadric as sqm
 from sqjax.superquadric import Superquadric
 
-FUNCTIONS = ("inside_outside", "residual", "distance", "radial_distance", "log_inside_outside")
+FUNCTIONS = ("inside_outside", "residual", "distance", "signed_distance", "radial_distance", "log_inside_outside")
 
 
 def _rotations(rng, n):
@@ -84,6 +84,8 @@ def _scalar(name):
             return sqm.residual(sq, point)
         if name == "distance":
             return sqm.distance(sq, point[None])[0]
+        if name == "signed_distance":
+            return sqm.signed_distance(sq, point[None])[0]
         if name == "radial_distance":
             return sqm.radial_distance(sq, point)
         x = sqm.to_model_frame(sq, point)

@@ -243,11 +243,10 @@ def _residual_point(x, y, z, la, e, d, deform: bool, kind: str = "distance"):
     """
     if kind == "size_weighted":
         return jnp.exp(0.5 * (la[0] + la[1] + la[2])) * jnp.expm1(_log_f_point(x, y, z, la, e, d, deform))
-    if deform:
-        lf, (gx, gy, gz) = jax.value_and_grad(_log_f_point, argnums=(0, 1, 2))(x, y, z, la, e, d, deform)
-        log_gn = jnp.log(jnp.maximum(jnp.sqrt(gx * gx + gy * gy + gz * gz), jnp.finfo(x.dtype).tiny))
-    else:
-        lf, log_gn, _ = log_inside_outside_and_gradient(jnp.stack([x, y, z]), la, e)
+    p = jnp.stack([x, y, z])
+    if deform:   # measured in the undeformed frame, as `superquadric.signed_distance` does
+        p = untaper(unbend(p, d[2:4]), d[0:2], jnp.exp(la[2:3]))
+    lf, log_gn, _ = log_inside_outside_and_gradient(p, la, e)
     return distance_from_log(lf, log_gn)
 
 

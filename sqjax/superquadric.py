@@ -366,17 +366,12 @@ def distance_from_log(log_f, log_grad_norm):
 def signed_distance(sq: Superquadric, points):
     """The residual `fit` minimises (`FitOptions.residual="distance"`), (..., 3) -> (...): the signed
     first-order distance to the surface through the root form of F (`distance_from_log`), negative
-    inside, in the units of the points. Deformations are followed through autodiff."""
-    log_a = jnp.log(sq.size)
-    tiny = jnp.finfo(points.dtype).tiny
-
-    def log_F(p):
-        return log_inside_outside_local(to_model_frame(sq, p), log_a, sq.epsilon)
-
-    flat = points.reshape(-1, 3)
-    lf, g = jax.vmap(jax.value_and_grad(log_F))(flat)
-    d = distance_from_log(lf, jnp.log(jnp.maximum(_safe_norm(g), tiny)))
-    return d.reshape(points.shape[:-1])
+    inside, in the units of the points. Of a deformed model it is measured in the undeformed frame
+    (first order in the deformation). Closed-form gradient of log F: finite values and gradients for
+    every finite input."""
+    x = to_model_frame(sq, points)
+    log_f, log_gn, _ = log_inside_outside_and_gradient(x, jnp.log(sq.size), sq.epsilon)
+    return distance_from_log(log_f, log_gn)
 
 
 def radial_distance(sq: Superquadric, points):
