@@ -75,10 +75,9 @@ class SegmentOptions:
     - `free_space`: visibility in selection (range images): a model that fills space in front of an
       observed point (the camera saw through it) pays `free_space` * K1 per such point (1 = as much as
       an explained point earns); 0 (default) = the paper's selection. Measured over the benchmark
-      (benchmarks/RESULTS.md), 1 cut mOSD noise regions from 22.6% to 14.9% and raised the table from
-      83% to 92% correct, but lost objects (54.9% -> 50.4% correct) and took 20% longer: today's
-      one-view fits bulge towards the camera, so the penalty also hits true parts. Off until the fit
-      itself respects visibility.
+      (benchmarks/RESULTS.md) with the distance fit, 1 lost mOSD objects (74.4% -> 61.4% correct,
+      noise regions 20.4% -> 28.9%; complex 50.0% -> 37.5%) for a gain on multi-part objects
+      (85.3% -> 91.2%), and took 55% longer. Visibility decides merges instead (`merge`).
     - `rings`: None = 4 per 160 pixels of working-image width and height (sqrt of the area ratio), so
       that growth per step scales with the image.
     - `subdivide`: seeds at several scales (range images): a seed window that fails (a depth
