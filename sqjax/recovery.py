@@ -434,16 +434,22 @@ class _Runner:
         if model.size == 0:
             return out
         margin = self.tau * (np.ones(point.size) if self.scale is None else self.scale[point])
+        return self._ray_hits(theta, model, P[point], v[point], margin)
+
+    def _ray_hits(self, theta, model, ends, rays, margin) -> np.ndarray:
+        """(M,) counts of the pairs e whose ray, back from `ends[e]` along `-rays[e]` (from `margin[e]`
+        on), passes through the model `theta[model[e]]` (`_free_space`), in fixed-size chunks."""
         theta_d = np.asarray(theta, np.dtype(self.dtype))
         n = min(_PAIRS, bucket(model.size, 1024))
         hit = np.zeros(model.size, bool)
         for s in range(0, model.size, n):
             m = min(n, model.size - s)
-            mi, pi, mg = np.zeros(n, np.int64), np.zeros(n, np.int32), np.zeros(n)
-            mi[:m], pi[:m], mg[:m] = model[s : s + m], point[s : s + m], margin[s : s + m]
-            hit[s : s + m] = np.asarray(_free_space(jnp.asarray(theta_d[mi]), self.points, self.views,
-                                                    jnp.asarray(pi), jnp.asarray(mg, self.dtype)))[:m]
-        return np.bincount(model[hit], minlength=M)
+            mi, pts, ray, mg = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
+            mi[:m], pts[:m], ray[:m], mg[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], margin[s : s + m]
+            hit[s : s + m] = np.asarray(_free_space(jnp.asarray(theta_d[mi]), jnp.asarray(pts, self.dtype),
+                                                    jnp.asarray(ray, self.dtype), jnp.arange(n, dtype=jnp.int32),
+                                                    jnp.asarray(mg, self.dtype)))[:m]
+        return np.bincount(model[hit], minlength=len(theta))
 
     def void_violations(self, theta) -> np.ndarray:
         """(M,) for models theta (M, 11): the pixels with no return (`_Domain.void_rays`) whose viewing
@@ -469,17 +475,7 @@ class _Runner:
         model, end, ray = np.concatenate(pairs_m), np.concatenate(ends), np.concatenate(dirs)
         if model.size == 0:
             return out
-        theta_d = np.asarray(theta, np.dtype(self.dtype))
-        n = min(_PAIRS, bucket(model.size, 1024))
-        hit = np.zeros(model.size, bool)
-        for s in range(0, model.size, n):
-            m = min(n, model.size - s)
-            mi, pts, rays = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
-            mi[:m], pts[:m], rays[:m] = model[s : s + m], end[s : s + m], ray[s : s + m]
-            hit[s : s + m] = np.asarray(_free_space(jnp.asarray(theta_d[mi]), jnp.asarray(pts, self.dtype),
-                                                    jnp.asarray(rays, self.dtype), jnp.arange(n, dtype=jnp.int32),
-                                                    jnp.zeros(n, self.dtype)))[:m]
-        return np.bincount(model[hit], minlength=M)
+        return self._ray_hits(theta, model, end, ray, np.zeros(model.size))
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the

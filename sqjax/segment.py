@@ -276,7 +276,7 @@ def _merge(run: _Runner, models: _Models, opts):
         # or no return at all) much more than its two parts do; a box under a table, whose side face
         # holds the legs, explains both pieces but fills the free space between the legs.
         seen = lambda th: run.free_space_violations(th) + run.void_violations(th)
-        extra = seen(theta[keep]) - seen(models.theta).reshape(-1)[np.array([pairs[k] for k in keep])].sum(1)
+        extra = seen(theta[keep]) - seen(models.theta)[np.array([pairs[k] for k in keep])].sum(1)
         ok = extra <= (1.0 - opts.keep_fraction) * np.array([r.sum() for r in regions])
         keep, regions, dist = ([x for x, good in zip(a, ok) if good] for a in (keep, regions, dist))
     if not keep:
