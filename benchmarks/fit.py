@@ -24,6 +24,11 @@ size_weighted`): robust gross 1.6 / 7.8 / 18.8 % at 0 / 5 / 10 % outliers (media
 eq. 7 cost 0.51-0.72 of the truth's: the cost, not the optimiser, preferred the thick slab. The loop
 suite (one call per problem, 40 N): 0.3 fits/s with compile, 14.7 fits/s warm (3.3x scipy).
 
+The same suite at the issue's size, `python benchmarks/fit.py --suites outliers --devices 1 --seconds 0.5`
+(2026-12-02, 200 problems per row, JSON `results/fit_outliers.json`): robust gross failures 0.0 / 3.5 /
+3.0 % at 0 / 5 / 10 % outliers (median IoU 0.983 / 0.980 / 0.972), plain 0.5 / 11.5 / 9.0 %; scipy
+18.8 % at every fraction (16 problems).
+
 `python benchmarks/fit.py --suites deform --devices 1` (2026-12-02, N = 200, 100 problems each; JSON
 `results/fit_deform.json`), `deform=True` with the world-unit distance of deformed models and the BIC
 test of `FitOptions.deform`; before them (same command, same day) in brackets:
