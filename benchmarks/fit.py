@@ -141,12 +141,18 @@ def problems(n_points: int, count: int, seed: int = 0):
         size, eps = rng.uniform(0.5, 2.0, 3), rng.uniform(0.2, 1.8, 2)
         R, t = random_rotation(rng), rng.uniform(-1, 1, 3)
         sq = sqjax.Superquadric.create(size, eps, rotation=R, translation=t)
-        view = rng.standard_normal(3)
-        view = t + 10 * view / np.linalg.norm(view)
-        pts.append(sqjax.sample_surface(sq, n_points, seed=int(rng.integers(2**31)), noise=NOISE * size.mean(),
-                                        viewpoint=view))
+        pts.append(one_view(sq, n_points, rng))
         truth.append((size, eps, R, t))
     return truth, np.stack(pts)
+
+
+def one_view(sq, n_points: int, rng) -> np.ndarray:
+    """n points of the side of `sq` facing a random viewpoint 10 units from its centre, noise 1% of its
+    mean size (`NOISE`)."""
+    view = rng.standard_normal(3)
+    view = np.asarray(sq.translation) + 10 * view / np.linalg.norm(view)
+    return sqjax.sample_surface(sq, n_points, seed=int(rng.integers(2**31)), noise=NOISE * float(np.mean(sq.size)),
+                                viewpoint=view)
 
 
 def batch_sq(params) -> sqjax.Superquadric:
@@ -419,10 +425,7 @@ def deformed_problems(n_points: int, count: int, kind: str, seed: int = 0):
         bend = (rng.uniform(0.3, 0.8) / size[2], rng.uniform(-np.pi, np.pi)) if kind == "bent" else (0.0, 0.0)
         sq = sqjax.Superquadric.create(size, eps, rotation=random_rotation(rng), translation=rng.uniform(-1, 1, 3),
                                        taper=taper, bend=bend)
-        view = rng.standard_normal(3)
-        view = np.asarray(sq.translation) + 10 * view / np.linalg.norm(view)
-        pts.append(sqjax.sample_surface(sq, n_points, seed=int(rng.integers(2**31)), noise=NOISE * size.mean(),
-                                        viewpoint=view))
+        pts.append(one_view(sq, n_points, rng))
         sqs.append(sq)
     return jax.tree.map(lambda *v: np.stack([np.asarray(x) for x in v]), *sqs), np.stack(pts)
 

@@ -677,14 +677,12 @@ def _fit_one(points, mask, theta0, opts: FitOptions):
         theta_u, aux_u = adjoint.apply(_solve, _stationarity, (pn, mask, th0, plain), frozenset())
         # the deformed model also starts from the undeformed optimum (zero deformation), so that its
         # gain over it measures what the 4 parameters add, not a better local minimum
-        nested = jnp.concatenate([jax.lax.stop_gradient(theta_u), jnp.zeros(4, dtype)])
-        theta_n, aux_n = adjoint.apply(_solve, _stationarity, (pn, mask, nested, opts), frozenset())
-        better = aux_n[0] < cost
-        theta = jnp.where(better, theta_n, theta)
-        cost, conv, weight = jax.tree.map(lambda a, b: jnp.where(better, a, b), aux_n, (cost, conv, weight))
-        keep = _deformation_pays(cost, aux_u[0], n)
-        theta = jnp.where(keep, theta, jnp.concatenate([theta_u, jnp.zeros(4, dtype)]))
-        cost, conv, weight = jax.tree.map(lambda a, b: jnp.where(keep, a, b), (cost, conv, weight), aux_u)
+        flat = jnp.concatenate([theta_u, jnp.zeros(4, dtype)])
+        nested = adjoint.apply(_solve, _stationarity, (pn, mask, jax.lax.stop_gradient(flat), opts), frozenset())
+        choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
+        theta, (cost, conv, weight) = choose(nested[1][0] < cost, nested, (theta, (cost, conv, weight)))
+        theta, (cost, conv, weight) = choose(_deformation_pays(cost, aux_u[0], n), (theta, (cost, conv, weight)),
+                                             (flat, aux_u))
     theta = theta.at[0:3].add(jnp.log(scale)).at[8:11].set(theta[8:11] * scale + centre)
     if opts.deform:
         theta = theta.at[13].divide(scale)
