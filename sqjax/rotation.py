@@ -2,10 +2,12 @@
 
 All functions are pure `jax.numpy`, NaN-safe (a "safe operand" is formed with `jnp.where` *before*
 any singular operation, with a Taylor branch near the singularity), and broadcast over leading axes.
+The public ones are jitted (one compile per input shape when called eagerly).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -26,6 +28,7 @@ def skew(w):
     )
 
 
+@jax.jit
 def exp(w):
     """Rotation vector (..., 3) [rad] -> rotation matrix (..., 3, 3) (Rodrigues)."""
     t2 = jnp.sum(w * w, -1)[..., None, None]
@@ -63,6 +66,7 @@ def _quaternion(R):
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
+@jax.jit
 def log(R):
     """Rotation matrix (..., 3, 3) -> rotation vector (..., 3) with angle in [0, pi].
 
@@ -90,6 +94,7 @@ def _ry(a):
     return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
 
 
+@jax.jit
 def from_euler(angles):
     """ZYZ Euler angles (..., 3) = (phi, theta, psi) [rad] -> R = Rz(phi) Ry(theta) Rz(psi), (..., 3, 3).
 
@@ -99,6 +104,7 @@ def from_euler(angles):
     return _rz(angles[..., 0]) @ _ry(angles[..., 1]) @ _rz(angles[..., 2])
 
 
+@jax.jit
 def to_euler(R):
     """Rotation matrix (..., 3, 3) -> ZYZ Euler angles (..., 3), theta in [0, pi].
 

@@ -4,7 +4,8 @@ Every function here is pure `jax.numpy` for one superquadric and points of shape
 `jax.vmap` for batches. Powers `|x / a| ** (2 / e)` are evaluated in the log domain,
 `exp((2 / e) * (log|x| - log a))`, with `log|x|` taken of a safe operand (|x| floored at 1e-10 a in
 float32, 1e-20 a in float64), so values and gradients are finite for every finite input (at the centre,
-on the axes, far away, e down to 0.1).
+on the axes, far away, e down to 0.1). The public functions are jitted: called eagerly, each compiles
+once per input shape (not once per primitive), and inside another jit they are inlined.
 """
 
 from __future__ import annotations
@@ -201,6 +202,7 @@ def bend_points(x, bend):
     return jnp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)
 
 
+@jax.jit
 def to_model_frame(sq: Superquadric, points):
     """World points (..., 3) -> undeformed model-frame points (..., 3): R^T (p - t), unbend, untaper."""
     x = (points - sq.translation) @ sq.rotation
@@ -208,6 +210,7 @@ def to_model_frame(sq: Superquadric, points):
     return untaper(x, sq.taper, sq.size[..., 2:3])
 
 
+@jax.jit
 def to_world_frame(sq: Superquadric, x):
     """Undeformed model-frame points (..., 3) -> world points: taper, bend, R x + t."""
     x = taper_points(x, sq.taper, sq.size[..., 2:3])
@@ -298,18 +301,21 @@ def log_inside_outside_and_gradient(x, log_size, epsilon):
     return e1 * t, log_gnorm, normal
 
 
+@jax.jit
 def inside_outside(sq: Superquadric, points):
     """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside."""
     x = to_model_frame(sq, points)
     return jnp.exp(log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon))
 
 
+@jax.jit
 def contains(sq: Superquadric, points):
     """Inside test, (..., 3) -> bool (...)."""
     x = to_model_frame(sq, points)
     return log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon) <= 0.0
 
 
+@jax.jit
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
     x = to_model_frame(sq, points)
@@ -329,6 +335,7 @@ def _safe_norm(v):
     return jnp.where(nz[..., 0], m[..., 0] * jnp.sqrt(jnp.where(nz[..., 0], s2, 1.0)), 0.0)
 
 
+@jax.jit
 def distance(sq: Superquadric, points):
     """Approximate Euclidean distance to the surface, |f| / ||grad_p f|| (eq. 10), (..., 3) -> (...).
 
@@ -380,6 +387,7 @@ def deformed_distance(x, log_size, epsilon, taper, bend):
     return distance_from_log(log_f, log_gn) / jnp.maximum(stretch, 1e-3)
 
 
+@jax.jit
 def signed_distance(sq: Superquadric, points):
     """The residual `fit` minimises (`FitOptions.residual="distance"`), (..., 3) -> (...): the signed
     first-order distance to the surface through the root form of F (`distance_from_log`), negative
@@ -392,6 +400,7 @@ def signed_distance(sq: Superquadric, points):
     return jax.vmap(deformed_distance)(*args).reshape(batch)
 
 
+@jax.jit
 def radial_distance(sq: Superquadric, points):
     """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...).
 
