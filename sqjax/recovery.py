@@ -2,9 +2,9 @@
 
 Host orchestration in numpy around jit-compiled batch kernels: the refits of all active hypotheses at
 a growth step (`fitting.fit_padded`, warm-started) and the eq. 10 distances (`_pair_distances`). The
-refit is one call per growth step over all active hypotheses, their number padded to a few fixed
-batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a growth step recompiles only
-when the hypotheses first reach a new bucket. Distances are computed only for the (model, point)
+refit of all active hypotheses at a growth step goes in calls of at most 64, each padded to one of a
+few fixed batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a growth step
+recompiles only when it first meets a new size. Distances are computed only for the (model, point)
 pairs that are read (a region and the ring of candidates around it), in fixed chunks of `_PAIRS`.
 """
 
@@ -30,17 +30,16 @@ _PAIRS = 1 << 15   # (model, point) pairs per call of the distance kernel
 _QUEUE = 3         # distance chunks in flight while one is read back
 
 
+_BATCHES = (1, 4, 16, 32, 64)
+"""Problems per call of the fit kernel: a growth step's hypotheses go in calls of 64, the last padded
+to the next of these sizes. Few sizes, few compiled kernels (each costs 5-10 s on CPU the first
+time): a fresh process compiles at most five per point count and option set, however the number of
+hypotheses moves; calls of 64 keep nearly all of one large batch's speed on CPU."""
+
+
 def batch_bucket(k: int) -> int:
-    """Padded number of hypotheses for k: 1, 4, 16, then 32, 48, 64, 96, 128, 192, ... (at most 1/3
-    wasted from 32 on). The small buckets matter: late in growth only a few models are active, and a
-    step costs in proportion to the padded batch."""
-    for b in (1, 4, 16):
-        if k <= b:
-            return b
-    b = 32
-    while b < k:
-        b = b * 3 // 2 if b & (b - 1) == 0 else b * 4 // 3
-    return b
+    """Padded number of problems for a call of k <= 64: the next of `_BATCHES`."""
+    return next(b for b in _BATCHES if b >= k)
 
 
 _OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))   # 8-neighbours (row, col)
@@ -479,26 +478,31 @@ class _Runner:
 
     def fit(self, regions, theta0, steps):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
-        fitter's own multistart (moment axes + EMS switches) when theta0 is None.
+        fitter's own multistart (moment axes + EMS switches) when theta0 is None -> theta (K, 11).
 
-        One call of the batch kernel for all K regions, padded to `batch_bucket(K)` problems of 128
-        points when all regions fit (seed windows at 160x120 hold about 100), else of max_points.
+        The regions go to the batch kernel in calls of at most 64 (`_BATCHES`), each of 128 points when
+        all regions fit (seed windows at 160x120 hold about 100), else of max_points. The calls are
+        queued before any result is read back.
         """
         K = len(regions)
         cap = bucket(self.opts.max_points, 32)
         small = max(min(r.size, self.opts.max_points) for r in regions) <= 128
-        N, Kb = (min(128, cap) if small else cap), batch_bucket(K)
+        N = min(128, cap) if small else cap
         opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=False)   # growth extrapolates
-        pts = np.zeros((Kb, N, 3))
-        msk = np.zeros((Kb, N), bool)
+        pts = np.zeros((K, N, 3))
+        msk = np.zeros((K, N), bool)
         for i, r in enumerate(regions):
             if r.size > self.opts.max_points:
                 r = r[np.linspace(0, r.size - 1, self.opts.max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
-        pts[K:], msk[K:] = pts[0], msk[0]          # padding rows: copies of the first problem
-        th0 = None if theta0 is None else jnp.asarray(_pad_rows(theta0, Kb, theta0[0]), self.dtype)
-        theta, _, _, _ = fit_padded(jnp.asarray(pts, self.dtype), jnp.asarray(msk), th0, opts)
-        theta = np.asarray(theta)[:K].astype(np.float64)
+        pending = []
+        for s in range(0, K, _BATCHES[-1]):
+            rows = np.arange(s, min(K, s + _BATCHES[-1]))
+            rows = np.concatenate([rows, np.full(batch_bucket(rows.size) - rows.size, rows[0])])   # pad: copies
+            th0 = None if theta0 is None else jnp.asarray(theta0[rows], self.dtype)
+            pending.append(fit_padded(jnp.asarray(pts[rows], self.dtype), jnp.asarray(msk[rows]), th0, opts)[0])
+        theta = np.concatenate([np.asarray(t)[: min(K - i * _BATCHES[-1], _BATCHES[-1])]
+                                for i, t in enumerate(pending)]).astype(np.float64)
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 
 

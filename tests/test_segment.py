@@ -97,28 +97,35 @@ def test_bad_input_type():
         segment(np.zeros((5, 4)))
 
 
-def test_one_kernel_call_per_growth_step_on_bucketed_shapes(monkeypatch):
-    """All active hypotheses are refitted by one call of the batch kernel per growth step, and the
-    batch sizes come from the few fixed buckets (so steps do not recompile)."""
+def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
+    """A refit of K hypotheses (one per growth step, one per seed start) is ceil(K / 64) calls of the
+    batch kernel, each of one of the few fixed batch sizes, so growth steps do not recompile."""
     from sqjax import recovery
 
-    calls = []
-    real = recovery.fit_padded
+    calls, refits = [], []
+    real, real_refit = recovery.fit_padded, recovery._Runner.fit
 
     def record(points, mask, theta0, opts):
-        calls.append((points.shape, theta0 is None))
+        calls.append(points.shape[:2])
         return real(points, mask, theta0, opts)
 
+    def record_refit(self, regions, theta0, steps):
+        before = len(calls)
+        out = real_refit(self, regions, theta0, steps)
+        refits.append((len(regions), len(calls) - before))
+        return out
+
     monkeypatch.setattr(recovery, "fit_padded", record)
+    monkeypatch.setattr(recovery._Runner, "fit", record_refit)
     image, _ = paper_scene("two_cylinders", noise=0.002)
     seg = segment(image, merge=False)
-    buckets = {recovery.batch_bucket(k) for k in range(1, 4097)}
+    assert all(made == -(-K // 64) for K, made in refits), refits
+    assert any(K > 64 for K, _ in refits)          # the seeds: more than one call
     # points: 128 when every region fits (seed windows), else max_points = 512
-    assert all(shape[0] in buckets and shape[1] in (128, 512) for shape, _ in calls)
+    assert all(K in recovery._BATCHES and N in (128, 512) for K, N in calls), sorted(set(calls))
     rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().reseed)   # seeds, and each reseeding round
-    seed_calls = 3 * rounds                       # the three starts of the seeds, each one batch
-    assert len(calls) <= seed_calls + seg.stats["growth_steps"]
-    assert len({shape for shape, _ in calls}) <= 6, sorted({shape for shape, _ in calls})
+    assert len(refits) <= 3 * rounds + seg.stats["growth_steps"]   # the three starts of the seeds, then a step each
+    assert len(set(calls)) <= 6, sorted(set(calls))
 
 
 def test_free_components_follow_the_adjacency():
