@@ -883,8 +883,8 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     **Returns:** a `Fit` (parameters, cost, per-point distances and weights `(K, N)`, converged flags, status).
 
     The points are centred on their median in float64 on the host (numpy) before the cast to `dtype`,
-    so far-away coordinates lose nothing to float32; then padded (numpy) to power-of-two buckets, so
-    one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
+    so far-away coordinates lose nothing to float32; then padded (numpy) to power-of-two buckets (N at
+    least 128), so one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
     differentiation at the optimum; the same steps in jax.numpy). When JAX has several CPU devices
     (`XLA_FLAGS=--xla_force_host_platform_device_count=2`) and they divide the padded batch, the
     problems are split between them (same kernel per problem, so the same results).
@@ -935,7 +935,7 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
                              f"at least {MIN_POINTS} are needed (one per parameter)")
     centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
     degenerate = _degenerate(xp, rel, mask)
-    Kb, Nb = bucket(K, 1), bucket(N)
+    Kb, Nb = bucket(K, 1), bucket(N, 128)   # small problems share one kernel: padding 128 points costs ~nothing
     pts = xp.pad(rel.astype(dtype), ((0, Kb - K), (0, Nb - N), (0, 0)))
     msk = xp.pad(mask, ((0, Kb - K), (0, Nb - N)))
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)

@@ -79,8 +79,9 @@ def test_corrupt_file_reported_others_finished(serial, scenes):
         truth = sqjax.read_range_image(scenes[0] / f"{name}.npz").labels
         score = sqjax.hoover(truth, r.segmentation.labels)
         assert (r.row["truth_parts"], r.row["correct"]) == (score.n_truth, score.correct)
-    # compile paid once: the second scene compiles (much) less than the first
-    assert res["scene1"].row["compile_seconds"] < res["scene0"].row["compile_seconds"]
+    # compile paid once: the second scene compiles no more than the first (both nothing when earlier
+    # tests of this process compiled the kernels already)
+    assert res["scene1"].row["compile_seconds"] <= res["scene0"].row["compile_seconds"]
 
 
 def test_compilation_cache_filled(serial, cache_dir):

@@ -67,7 +67,7 @@ def test_kernel_traces_once_per_bucket(monkeypatch):
     monkeypatch.setattr(fitting, "_map_problems", counted)
     opts = FitOptions(max_steps=2, multistart=False)   # a fresh compile-cache key for this test
     pts = problems(2, 100, seed=2)
-    for n in (40, 50, 64):                              # growth steps inside the 64 bucket: one trace
+    for n in (40, 50, 64):                              # growth steps inside one bucket (128): one trace
         fit(pts[:, :n], options=opts)
     fit(pts[:, :60], mask=np.broadcast_to(np.arange(60) < 50, (2, 60)), options=opts)
     assert eqx.debug.get_num_traces(counted) == 1
