@@ -32,7 +32,7 @@ _QUEUE = 3         # distance chunks in flight while one is read back
 
 _BATCHES = (1, 4, 16, 32, 64)
 """Problems per call of the fit kernel: a growth step's hypotheses go in calls of 64, the last padded
-to the next of these sizes. Few sizes, few compiled kernels (each costs 5-10 s on CPU the first
+to the next of these sizes. Few sizes, few compiled kernels (each costs 5-20 s on CPU the first
 time): a fresh process compiles at most five per point count and option set, however the number of
 hypotheses moves; calls of 64 keep nearly all of one large batch's speed on CPU."""
 
