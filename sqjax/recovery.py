@@ -31,14 +31,15 @@ _QUEUE = 3         # distance chunks in flight while one is read back
 
 
 _BATCHES = (1, 4, 16, 32, 64)
-"""Problems per call of the fit kernel: a growth step's hypotheses go in calls of 64, the last padded
-to the next of these sizes. Few sizes, few compiled kernels (each costs 5-20 s on CPU the first
-time): a fresh process compiles at most five per point count and option set, however the number of
-hypotheses moves; calls of 64 keep nearly all of one large batch's speed on CPU."""
+"""Problems per call of the fit kernel: up to 64 hypotheses go in one call padded to the next of these
+sizes, more in calls of 64 (the last padded to 64), so one refit uses one compiled kernel. Few sizes,
+few kernels (each costs 5-20 s on CPU the first time): a fresh process compiles at most five per
+point count and option set, however the number of hypotheses moves; calls of 64 keep nearly all of
+one large batch's speed on CPU."""
 
 
 def batch_bucket(k: int) -> int:
-    """Padded number of problems for a call of k <= 64: the next of `_BATCHES`."""
+    """Padded number of problems for a call of k <= 64 problems: the next of `_BATCHES`."""
     return next(b for b in _BATCHES if b >= k)
 
 
@@ -480,7 +481,7 @@ class _Runner:
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None -> theta (K, 11).
 
-        The regions go to the batch kernel in calls of at most 64 (`_BATCHES`), each of 128 points when
+        The regions go to the batch kernel in calls of one size (`_BATCHES`), each of 128 points when
         all regions fit (seed windows at 160x120 hold about 100), else of max_points. The calls are
         queued before any result is read back.
         """
@@ -495,13 +496,14 @@ class _Runner:
             if r.size > self.opts.max_points:
                 r = r[np.linspace(0, r.size - 1, self.opts.max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
+        size = batch_bucket(min(K, _BATCHES[-1]))   # one kernel per refit: a long one's last call is full too
         pending = []
-        for s in range(0, K, _BATCHES[-1]):
-            rows = np.arange(s, min(K, s + _BATCHES[-1]))
-            rows = np.concatenate([rows, np.full(batch_bucket(rows.size) - rows.size, rows[0])])   # pad: copies
+        for s in range(0, K, size):
+            rows = np.arange(s, min(K, s + size))
+            rows = np.concatenate([rows, np.full(size - rows.size, rows[0])])   # padding: copies of a problem
             th0 = None if theta0 is None else jnp.asarray(theta0[rows], self.dtype)
             pending.append(fit_padded(jnp.asarray(pts[rows], self.dtype), jnp.asarray(msk[rows]), th0, opts)[0])
-        theta = np.concatenate([np.asarray(t)[: min(K - i * _BATCHES[-1], _BATCHES[-1])]
+        theta = np.concatenate([np.asarray(t)[: min(K - i * size, size)]
                                 for i, t in enumerate(pending)]).astype(np.float64)
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 

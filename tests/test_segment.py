@@ -99,7 +99,7 @@ def test_bad_input_type():
 
 def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     """A refit of K hypotheses (one per growth step, one per seed start) is ceil(K / 64) calls of the
-    batch kernel, each of one of the few fixed batch sizes, so growth steps do not recompile."""
+    batch kernel, all of one of the few fixed batch sizes, so growth steps do not recompile."""
     from sqjax import recovery
 
     calls, refits = [], []
@@ -112,15 +112,15 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     def record_refit(self, regions, theta0, steps):
         before = len(calls)
         out = real_refit(self, regions, theta0, steps)
-        refits.append((len(regions), len(calls) - before))
+        refits.append((len(regions), len(calls) - before, len(set(calls[before:]))))
         return out
 
     monkeypatch.setattr(recovery, "fit_padded", record)
     monkeypatch.setattr(recovery._Runner, "fit", record_refit)
     image, _ = paper_scene("two_cylinders", noise=0.002)
     seg = segment(image, merge=False)
-    assert all(made == -(-K // 64) for K, made in refits), refits
-    assert any(K > 64 for K, _ in refits)          # the seeds: more than one call
+    assert all(made == -(-K // 64) and shapes == 1 for K, made, shapes in refits), refits
+    assert any(K > 64 for K, _, _ in refits)          # the seeds: more than one call
     # points: 128 when every region fits (seed windows), else max_points = 512
     assert all(K in recovery._BATCHES and N in (128, 512) for K, N in calls), sorted(set(calls))
     rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().reseed)   # seeds, and each reseeding round
