@@ -497,14 +497,11 @@ class _Runner:
                 r = r[np.linspace(0, r.size - 1, self.opts.max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
         size = batch_bucket(min(K, _BATCHES[-1]))   # one kernel per refit: a long one's last call is full too
-        pending = []
-        for s in range(0, K, size):
-            rows = np.arange(s, min(K, s + size))
-            rows = np.concatenate([rows, np.full(size - rows.size, rows[0])])   # padding: copies of a problem
-            th0 = None if theta0 is None else jnp.asarray(theta0[rows], self.dtype)
-            pending.append(fit_padded(jnp.asarray(pts[rows], self.dtype), jnp.asarray(msk[rows]), th0, opts)[0])
-        theta = np.concatenate([np.asarray(t)[: min(K - i * size, size)]
-                                for i, t in enumerate(pending)]).astype(np.float64)
+        rows = np.arange(-(-K // size) * size)
+        rows = np.where(rows < K, rows, 0).reshape(-1, size)   # padding: copies of problem 0, dropped below
+        pending = [fit_padded(jnp.asarray(pts[r], self.dtype), jnp.asarray(msk[r]),
+                              None if theta0 is None else jnp.asarray(theta0[r], self.dtype), opts)[0] for r in rows]
+        theta = np.concatenate([np.asarray(t) for t in pending])[:K].astype(np.float64)
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 
 
