@@ -4,6 +4,7 @@
     python benchmarks/segment.py --quick              # a few scenes of each suite
     python benchmarks/segment.py --suites mosd,multipart --out benchmarks/out/segment.json
     python benchmarks/segment.py --figures benchmarks/figures   # also figures of the worst scenes
+    python benchmarks/segment.py --labels out/labels     # also every scene's label image (.npz per suite)
 
 Suites:
 - `synthetic`: seeded `sqjax.random_scene`s (2-6 separate, touching, intersecting or occluding parts,
@@ -80,9 +81,11 @@ def score(truth, found, ignore, table=None):
 OPTIONS: dict = {}   # -o KEY=VALUE: SegmentOptions for an ablation (the defaults otherwise)
 
 
-def run_scene(image, truth, *, table=None, truth_sq=None, figure=None):
+def run_scene(image, truth, *, table=None, truth_sq=None, figure=None, found=None):
     truth, ignore = visible_truth(truth)
     seg = sqjax.segment(image, **OPTIONS)
+    if found is not None:
+        found.append(seg.labels)
     row = {"found_parts": len(seg.parts), **score(truth, seg.labels, ignore, table),
            "seconds": seg.timings["total"], "compile_seconds": seg.timings["compile"],
            "run_seconds": seg.timings["run"]}
@@ -178,6 +181,9 @@ def main(argv=None):
     ap.add_argument("--out", default="benchmarks/out/segment.json")
     ap.add_argument("--figures", default=None, help="folder for figures of the worst scenes of each suite")
     ap.add_argument("--worst", type=int, default=2, help="figures per suite with --figures")
+    ap.add_argument("--labels", default=None,
+                    help="folder for the found label images, one SUITE.npz per suite keyed by scene (to compare "
+                         "two versions of the code scene by scene)")
     ap.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a SegmentOptions field for an ablation (value parsed as a Python literal)")
     args = ap.parse_args(argv)
@@ -222,17 +228,20 @@ def main(argv=None):
 
     categories = mosd_categories()
     for suite, items in scenes.items():
-        rows = []
+        rows, found = [], []
         for name, make in items:
             image, kw = make()
             truth = image.labels if suite != "mosd" else mosd_truth(image.labels)
-            row = {"scene": name, **run_scene(image, truth, **kw)}
+            row = {"scene": name, **run_scene(image, truth, **kw, found=found)}
             if suite == "mosd":
                 row["category"] = categories.get(name, "?")
             rows.append(row)
             _progress(suite, row)
         if not rows:
             continue
+        if args.labels:
+            Path(args.labels).mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(Path(args.labels) / f"{suite}.npz", **{n: f for (n, _), f in zip(items, found)})
         results[suite] = {"rows": rows, "summary": summarise(rows)}
         if suite == "mosd":
             results[suite]["step"] = args.mosd_step
