@@ -187,9 +187,9 @@ class Part:
     - `region`: the points it explains (eq. 10 distance within tau): flat pixel indices (images) or row
       indices of the input (clouds). Regions of two parts may overlap, where both explain the data.
     - `error`: sum of squared eq. 10 distances over the region.
-    - `num_points`: pixels (points) labelled with this part, always > 0: each explained pixel goes to
-      its nearest part, and with `SegmentOptions.propagate` unexplained pixels the surface joins to
-      the part's label take it too, so this can exceed `num_explained`.
+    - `num_points`: pixels (points) labelled with this part, always > 0. Each explained pixel goes to
+      its nearest part; with `SegmentOptions.propagate`, so do unexplained pixels that the surface
+      joins to the part's labelled ones, so this can exceed `num_explained`.
     - `num_explained`: `region.size`.
     """
 

@@ -153,16 +153,17 @@ def test_reseeding_finds_a_part_whose_hypotheses_lost_early():
 
 
 def _mosd_image(name: str):
-    """mOSD scene `name` at 160 x 120 (skips when ../shared/data is absent)."""
+    """mOSD scene `name` at 160 x 120 and its truth (label // 10 per object, the table one region);
+    skips when ../shared/data is absent."""
     folder = "learn" if name.startswith("learn") else "test"
-    return sqjax.read_range_image(data_path("mosd", folder, f"{name}.pcd")).subsample(4)
+    image = sqjax.read_range_image(data_path("mosd", folder, f"{name}.pcd")).subsample(4)
+    labels = image.labels
+    return image, np.where(labels >= 10, labels // 10, np.where(labels > 0, 1, 0))
 
 
 def _mosd_scores(name: str, tolerances=(0.8,)) -> list:
     """Hoover scores of one segmentation of mOSD scene `name` at 160 x 120, one per tolerance."""
-    image = _mosd_image(name)
-    labels = image.labels
-    truth = np.where(labels >= 10, labels // 10, np.where(labels > 0, 1, 0))
+    image, truth = _mosd_image(name)
     found = segment(image).labels
     return [hoover(truth, found, tolerance=t) for t in tolerances]
 
@@ -184,8 +185,7 @@ def test_mosd_unexplained_surface_takes_the_label_it_joins():
     a third of one box unexplained. With `propagate` those pixels, joined to the box's labelled ones
     without a depth jump, take its label: the labels of explained pixels are unchanged, more pixels
     are labelled, and no object is detected worse."""
-    image = _mosd_image("test7")
-    truth = np.where(image.labels >= 10, image.labels // 10, np.where(image.labels > 0, 1, 0))
+    image, truth = _mosd_image("test7")
     plain, filled = segment(image, propagate=False).labels, segment(image).labels
     assert np.array_equal(filled[plain > 0], plain[plain > 0])
     assert (filled > 0).sum() > (plain > 0).sum() and not np.any(filled[~image.valid])
