@@ -35,8 +35,8 @@ folder back.
          "translation": [x, y, z],                  # model centre, camera frame, data units
          "taper": [Kx, Ky], "bend": [k, alpha],     # zero unless deformations were fitted
          "num_points": int,                         # pixels / points labelled with this part (> 0)
-         "num_explained": int,                      # pixels / points its model explains (its region,
-                                                    # within tau; regions of parts may overlap, labels not)
+         "num_explained": int,                      # of those, the ones its model explains (its
+                                                    # region, within tau)
          "error": float,                            # sum of squared eq. 10 distances over the region
          "rms_distance": float}                     # sqrt(error / num_explained)
       ]

@@ -477,7 +477,7 @@ class _Runner:
             return out
         return self._ray_hits(theta, model, end, ray, np.zeros(model.size))
 
-    def fit(self, regions, theta0, steps):
+    def fit(self, regions, theta0, steps, size_bound=False):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None -> theta (K, 11).
 
@@ -489,7 +489,7 @@ class _Runner:
         cap = bucket(self.opts.max_points, 32)
         small = max(min(r.size, self.opts.max_points) for r in regions) <= 128
         N = min(128, cap) if small else cap
-        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=False)   # growth extrapolates
+        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=size_bound)   # growth extrapolates
         pts = np.zeros((K, N, 3))
         msk = np.zeros((K, N), bool)
         for i, r in enumerate(regions):
