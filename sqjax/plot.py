@@ -254,16 +254,19 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
         _style_3d(ax)
         ax.set_title("(b) points (x, y, z)" + (", in colour" if image.colors is not None else ""))
         final_labels = np.asarray(segmentation.labels)
+        # the models are ray cast no finer than a panel's pixels (a third of the figure's width)
+        step = max(1, int(np.ceil(max(H, W) / (fig.get_figwidth() * dpi / 3))))
+        small = image.subsample(step)
         for k, (name, models) in enumerate(panels):
             ax = fig.add_subplot(spec[(2 + k) // 3, (2 + k) % 3])
             sqs = _superquadrics(models)
-            lab, shade = _cast_models(sqs, image.camera, image.shape, resolution)
+            lab, shade = _cast_models(sqs, small.camera, small.shape, resolution)
             if k == 2:   # the final parts: the colours of labels.png
                 colors = label_colors(n_final)
             else:        # earlier models: the colour of the final part they overlap most
-                idx = _match_colors(lab, final_labels, len(sqs), n_final)  # pyright: ignore[reportArgumentType]
+                idx = _match_colors(lab, final_labels[::step, ::step], len(sqs), n_final)  # pyright: ignore[reportArgumentType]
                 colors = label_colors(int(idx.max()) + 1)[idx] if idx.size else np.zeros((0, 3))
-            rgb = _paint(lab, shade, colors, image.valid)
+            rgb = _paint(lab, shade, colors, small.valid)
             ax.imshow(rgb, interpolation="nearest")
             ax.set_title(f"({'cde'[k]}) {name}")
             ax.set_axis_off()
