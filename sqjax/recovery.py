@@ -297,7 +297,10 @@ def _free_space(theta, points, views, point, margin):
     any of `_RAY_SAMPLES` samples on its viewing ray, from `margin[e]` in front of the point back to the
     near side of the model's bounding sphere, lies inside the model (log F < 0, eq. 5). The camera saw
     through there, so a model that fills it is contradicted by the data. theta (E, 11), points (P, 3),
-    views (P, 3) unit rays, point (E,) int32, margin (E,) -> (E,) bool."""
+    views (P, 3) unit rays, point (E,) int32, margin (E,) -> (E,) bool.
+
+    The samples span the sphere's chord: a swollen model (a bar 40 m long and 5 cm thick across the
+    ray) is sampled every few metres and seldom seen; `_free_space_box` samples the box's chord."""
     rot = jax.vmap(so3.exp)(theta[:, 5:8])
     p, v, c = points[point], views[point], theta[:, 8:11]
     radius = jnp.sqrt(jnp.sum(jnp.exp(2.0 * theta[:, 0:3]), -1))
@@ -308,6 +311,32 @@ def _free_space(theta, points, views, point, margin):
     x = jnp.einsum("esi,eij->esj", q - c[:, None], rot)
     log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, 0:3], theta[:, None, 3:5])
     return jnp.any(log_f < 0.0, -1) & (reach > margin)
+
+
+@jax.jit
+def _free_space_box(theta, points, views, point, margin, limit):
+    """`_free_space` with the samples on the ray's chord of the model's bounding box, between
+    `margin[e]` and `limit[e]` (the camera) back from the point: a bar 40 m long and 5 cm thick across
+    the ray is sampled across its 5 cm. limit (E,); the rest as `_free_space`."""
+    rot = jax.vmap(so3.exp)(theta[:, 5:8])
+    p, v, c = points[point], views[point], theta[:, 8:11]
+    x0 = jnp.einsum("ei,eij->ej", p - c, rot)               # the point, in the model frame
+    dx = -jnp.einsum("ei,eij->ej", v, rot)                   # back towards the camera, unit
+    a = jnp.exp(theta[:, 0:3])
+    tiny = jnp.finfo(x0.dtype).tiny
+    big = jnp.finfo(x0.dtype).max
+    safe = jnp.where(jnp.abs(dx) > tiny, dx, tiny)
+    s1, s2 = (-a - x0) / safe, (a - x0) / safe
+    parallel = jnp.abs(dx) <= tiny                            # within the slab for every s, or never
+    s_lo = jnp.where(parallel, jnp.where(jnp.abs(x0) <= a, -big, big), jnp.minimum(s1, s2))
+    s_hi = jnp.where(parallel, jnp.where(jnp.abs(x0) <= a, big, -big), jnp.maximum(s1, s2))
+    lo = jnp.maximum(jnp.max(s_lo, -1), margin)
+    hi = jnp.minimum(jnp.min(s_hi, -1), limit)
+    frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
+    back = lo[:, None] + jnp.maximum(hi - lo, 0.0)[:, None] * frac    # (E, S)
+    x = x0[:, None] + back[..., None] * dx[:, None]
+    log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, 0:3], theta[:, None, 3:5])
+    return jnp.any(log_f < 0.0, -1) & (hi > lo)
 
 
 def _pad_rows(a, n, fill):
@@ -410,11 +439,11 @@ class _Runner:
             d /= self.scale[point]
         return d, inside, away
 
-    def free_space_violations(self, theta) -> np.ndarray:
+    def free_space_violations(self, theta, *, box: bool = False) -> np.ndarray:
         """(M,) for models theta (M, 11): the valid points whose viewing ray passes through the model
         in front of them (by more than tau, in units of the local noise; `_free_space`). Candidates
         are the points whose ray passes within the model's bounding sphere, in front of the point.
-        Images only (clouds have no viewpoint): zeros otherwise."""
+        Images only (clouds have no viewpoint): zeros otherwise. `box`: sampled with `_free_space_box`."""
         M = len(theta)
         out = np.zeros(M, np.int64)
         if self.dom.views is None or M == 0:
@@ -434,9 +463,9 @@ class _Runner:
         if model.size == 0:
             return out
         margin = self.tau * (np.ones(point.size) if self.scale is None else self.scale[point])
-        return self._ray_hits(theta, model, P[point], v[point], margin)
+        return self._ray_hits(theta, model, P[point], v[point], margin, box)
 
-    def _ray_hits(self, theta, model, ends, rays, margin) -> np.ndarray:
+    def _ray_hits(self, theta, model, ends, rays, margin, box: bool = False) -> np.ndarray:
         """(M,) counts of the pairs e whose ray, back from `ends[e]` along `-rays[e]` (from `margin[e]`
         on), passes through the model `theta[model[e]]` (`_free_space`), in fixed-size chunks."""
         theta_d = np.asarray(theta, np.dtype(self.dtype))
@@ -446,16 +475,20 @@ class _Runner:
             m = min(n, model.size - s)
             mi, pts, ray, mg = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
             mi[:m], pts[:m], ray[:m], mg[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], margin[s : s + m]
-            hit[s : s + m] = np.asarray(_free_space(jnp.asarray(theta_d[mi]), jnp.asarray(pts, self.dtype),
-                                                    jnp.asarray(ray, self.dtype), jnp.arange(n, dtype=jnp.int32),
-                                                    jnp.asarray(mg, self.dtype)))[:m]
+            args = (jnp.asarray(theta_d[mi]), jnp.asarray(pts, self.dtype), jnp.asarray(ray, self.dtype),
+                    jnp.arange(n, dtype=jnp.int32), jnp.asarray(mg, self.dtype))
+            if box:   # back to the camera at most (its plane, orthographic)
+                limit = np.einsum("ej,ej->e", pts + self.centre, ray)
+                hit[s : s + m] = np.asarray(_free_space_box(*args, jnp.asarray(limit, self.dtype)))[:m]
+            else:
+                hit[s : s + m] = np.asarray(_free_space(*args))[:m]
         return np.bincount(model[hit], minlength=len(theta))
 
-    def void_violations(self, theta) -> np.ndarray:
+    def void_violations(self, theta, *, box: bool = False) -> np.ndarray:
         """(M,) for models theta (M, 11): the pixels with no return (`_Domain.void_rays`) whose viewing
         ray passes through the model (`_free_space` along the ray's chord of the bounding sphere). The
         camera saw no surface there, so a model there is contradicted. Pinhole images only: zeros
-        otherwise."""
+        otherwise. `box`: sampled with `_free_space_box`."""
         M = len(theta)
         out = np.zeros(M, np.int64)
         v = self.dom.void_rays
@@ -475,7 +508,7 @@ class _Runner:
         model, end, ray = np.concatenate(pairs_m), np.concatenate(ends), np.concatenate(dirs)
         if model.size == 0:
             return out
-        return self._ray_hits(theta, model, end, ray, np.zeros(model.size))
+        return self._ray_hits(theta, model, end, ray, np.zeros(model.size), box)
 
     def fit(self, regions, theta0, steps, size_bound=False):
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the

@@ -361,6 +361,17 @@ def test_a_model_in_front_of_the_data_violates_free_space():
     v = run.free_space_violations(np.stack([behind, in_front]))
     covered = np.sum(np.all(np.abs(dom.points[:, :2]) < 1.0, 1))     # wall pixels in the slab's footprint
     assert v[0] == 0 and v[1] >= 0.9 * covered > 0, (v, covered)
+    assert np.array_equal(run.free_space_violations(np.stack([behind, in_front]), box=True), v)
+    # a bar 40 m long and 0.1 m thick across the rays, 0.3 m in front of the wall: the bounding sphere's
+    # chord samples it every 2.5 m; the box's chord (`box=True`, what `part_volumes` scores with) across
+    # its 0.1 m, so each wall pixel behind it counts. One behind the camera contradicts nothing.
+    bar = np.r_[np.log([20.0, 0.1, 0.05]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([0.0, 0.0, 4.7]) - centre]
+    behind_camera = bar.copy()
+    behind_camera[10] = -1.0 - centre[2]
+    v = run.free_space_violations(np.stack([bar, behind_camera]), box=True)
+    row = np.sum(np.abs(dom.points[:, 1]) < 0.1 * 4.7 / 5.0)         # wall pixels in the bar's shadow
+    assert v[0] >= 0.9 * row > 0 and v[1] == 0, (v, row)
+    assert run.free_space_violations(np.stack([bar]))[0] < 0.5 * row   # what the sphere's chord sees
 
 
 def test_a_model_where_the_camera_saw_nothing_violates_free_space():
@@ -415,8 +426,9 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
         return np.array([sqjax.volume_iou(truth[m - 1], s.parts[n - 1].superquadric, n=20_000) for m, n in pairs])
 
     iou, before = ious(seg), ious(grown)
-    assert iou.max() > 0.9 and np.median(iou) > 0.5, iou          # the top, then legs about 2-3 px wide
-    assert np.median(iou) > np.median(before) + 0.2, (iou, before)
+    # the top near the truth; the legs, 2-3 px wide, of about their length (before: up to 900 m long)
+    assert iou.max() > 0.9 and np.all(iou >= before - 0.05), (iou, before)
+    assert np.median(iou) > np.median(before) + 0.1, (iou, before)
     extent = max(float(np.max(np.asarray(t.size))) for t in truth)
     assert all(float(np.max(np.asarray(seg.parts[n - 1].superquadric.size))) < 2 * extent for _, n in pairs)
     for i, p in enumerate(seg.parts):                                # regions: labelled points it explains
