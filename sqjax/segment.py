@@ -28,6 +28,7 @@ from .recovery import (
     _pairs,
     _Runner,
     _seed,
+    _split,
     _starts,
     free_components,
     viewing_rays,
@@ -518,24 +519,25 @@ def _part_volumes(run: _Runner, models: _Models, labels: np.ndarray) -> np.ndarr
     starts = [growth, *_starts(run.host_points, regions, origin), None]
     cands = [growth] + [run.fit(regions, th0, run.opts.fit_steps, size_bound=True) for th0 in starts]
     model, point = _pairs(regions)
-    score, volume = [], []
-    for i, th in enumerate(cands):
-        ok = np.isfinite(th).all(1)
-        cands[i] = th = np.where(ok[:, None], th, growth)
+    score = []
+    for i, th in enumerate(cands):      # one candidate at a time: each call's pairs fill its chunks
+        ok = np.isfinite(th).all(1, keepdims=True)
+        cands[i] = th = np.where(ok, th, growth)
         d, _, _ = run.distances(th, model, point)
         agree = (np.bincount(model, d < run.tau, len(use)) - run.free_space_violations(th, box=True)
                  - run.void_violations(th, box=True))
-        score.append(np.where(ok, agree, -np.inf))
-        volume.append(np.asarray(_world(jnp.asarray(_pad_rows(th, bucket(len(th), 8), th[0]), jnp.float32),
-                                        jnp.zeros(3, jnp.float32)).volume)[: len(th)])
-    score, volume = np.array(score), np.array(volume)
+        score.append(np.where(ok.ravel(), agree, -np.inf))
+    score, stack = np.array(score), np.concatenate(cands)
+    C, K = score.shape
+    volume = np.asarray(_world(jnp.asarray(_pad_rows(stack, bucket(C * K, 8), stack[0]), jnp.float32),
+                               jnp.zeros(3, jnp.float32)).volume)[: C * K].reshape(C, K)
     # a bounded candidate whenever one agrees within 1 - keep_fraction of the part's points (the
     # tolerance by which growth accepts a step) as well as the growth model: its extent is the data's
     bounded, bvol = score[1:], volume[1:]
     best = 1 + np.argmin(np.where(bounded == bounded.max(0), bvol, np.inf), 0)
     sizes = np.array([r.size for r in regions])
     pick = np.where(bounded.max(0) >= score[0] - (1.0 - run.opts.keep_fraction) * sizes, best, 0)
-    theta[use] = np.array(cands)[pick, np.arange(len(use))]
+    theta[use] = stack.reshape(C, K, -1)[pick, np.arange(K)]
     return theta
 
 
@@ -543,17 +545,17 @@ def _parts(run: _Runner, theta: np.ndarray, labels: np.ndarray) -> list:
     """`Part`s of the models theta (M, 11) that own labels (flat labels over run's points, 0 = none,
     i + 1 = model i; every model owns some): each part's region is its labelled points that its model
     explains (eq. 10 distance within tau)."""
-    model = labels - 1
-    point = np.flatnonzero(model >= 0)
-    model = model[point]
+    point = np.flatnonzero(labels > 0)
+    point = point[np.argsort(labels[point], kind="stable")]       # grouped by model, in point order
+    model = labels[point] - 1
     d, _, _ = run.distances(theta, model, point)
     inl = d < run.tau
-    parts = []
-    for i, sq in enumerate(_to_world(theta, run.centre)):
-        sel = inl & (model == i)
-        parts.append(Part(sq, run.dom.index[point[sel]], float(np.sum(d[sel].astype(np.float64) ** 2)),
-                          int(np.sum(model == i)), int(sel.sum())))
-    return parts
+    M = len(theta)
+    count = np.bincount(model, minlength=M)
+    error = np.bincount(model[inl], d[inl].astype(np.float64) ** 2, M)
+    regions = _split(run.dom.index[point[inl]], model[inl], M)
+    return [Part(sq, regions[i], float(error[i]), int(count[i]), int(regions[i].size))
+            for i, sq in enumerate(_to_world(theta, run.centre))]
 
 
 def _propagate(run: _Runner, theta, best, has):
