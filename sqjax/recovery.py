@@ -2,9 +2,9 @@
 
 Host orchestration in numpy around jit-compiled batch kernels: the refits of all active hypotheses at
 a growth step (`fitting.fit_padded`, warm-started) and the eq. 10 distances (`_pair_distances`). The
-refit of all active hypotheses at a growth step goes in calls of at most 64, each padded to one of a
-few fixed batch sizes (`batch_bucket`) and the point counts to fixed sizes, so a growth step
-recompiles only when it first meets a new size. Distances are computed only for the (model, point)
+refit of all active hypotheses at a growth step goes in calls of a few fixed numbers of problems
+(`fitting.call_size`) and point counts (128 or max_points), so a growth step recompiles only when it
+first meets a new size. Distances are computed only for the (model, point)
 pairs that are read (a region and the ring of candidates around it), in fixed chunks of `_PAIRS`.
 """
 
@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
-from .fitting import FitOptions, bucket, fit_padded
+from .fitting import FitOptions, bucket, call_size, fit_padded
 from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
 from .superquadric import log_inside_outside_and_gradient
 
@@ -30,17 +30,13 @@ _PAIRS = 1 << 15   # (model, point) pairs per call of the distance kernel
 _QUEUE = 3         # distance chunks in flight while one is read back
 
 
-_BATCHES = (1, 4, 16, 32, 64)
-"""Problems per call of the fit kernel: up to 64 hypotheses go in one call padded to the next of these
-sizes, more in calls of 64 (the last padded to 64), so one refit uses one compiled kernel. Few sizes,
-few kernels (each costs 5-20 s on CPU the first time): a fresh process compiles at most five per
-point count and option set, however the number of hypotheses moves; calls of 64 keep nearly all of
-one large batch's speed on CPU."""
-
-
-def batch_bucket(k: int) -> int:
-    """Padded number of problems for a call of k <= 64 problems: the next of `_BATCHES`."""
-    return next(b for b in _BATCHES if b >= k)
+def _pair_chunk(E: int) -> int:
+    """Pairs per call of a pair kernel for E pairs: 1024 times a power of 4, at most `_PAIRS` (four
+    compiled sizes; a padded call's pairs are cheap next to a compile, about 1 s each on CPU)."""
+    n = 1024
+    while n < min(E, _PAIRS):
+        n *= 4
+    return min(n, _PAIRS)
 
 
 _OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))   # 8-neighbours (row, col)
@@ -408,7 +404,7 @@ class _Runner:
         away from the camera (E,) bool (see `_pair_distances`). theta (K, 11); model, point (E,).
 
         Only the pairs asked for are computed (a region and the ring around it, not every point), in
-        fixed chunks of `_PAIRS` (smaller calls padded to a power of two), a few queued ahead of the
+        fixed chunks of `_PAIRS` (smaller calls padded, `_pair_chunk`), a few queued ahead of the
         one read back. Each pair gets its model's row of theta, gathered here, so the kernel compiles
         once per chunk size whatever the number of models.
         """
@@ -418,7 +414,7 @@ class _Runner:
             return d, inside, away
         theta = np.asarray(theta, np.dtype(self.dtype))
         args = (jnp.asarray(self.opts.enlarge, self.dtype), jnp.asarray(self.margin, self.dtype))
-        n = min(_PAIRS, bucket(E, 1024))
+        n = _pair_chunk(E)
 
         def read(s, out):
             m = min(n, E - s)
@@ -469,7 +465,7 @@ class _Runner:
         """(M,) counts of the pairs e whose ray, back from `ends[e]` along `-rays[e]` (from `margin[e]`
         on), passes through the model `theta[model[e]]` (`_free_space`), in fixed-size chunks."""
         theta_d = np.asarray(theta, np.dtype(self.dtype))
-        n = min(_PAIRS, bucket(model.size, 1024))
+        n = _pair_chunk(model.size)
         hit = np.zeros(model.size, bool)
         for s in range(0, model.size, n):
             m = min(n, model.size - s)
@@ -514,22 +510,25 @@ class _Runner:
         """Fit each region (index array, subsampled to max_points) from theta0 (K, 11), or with the
         fitter's own multistart (moment axes + EMS switches) when theta0 is None -> theta (K, 11).
 
-        The regions go to the batch kernel in calls of one size (`_BATCHES`), each of 128 points when
-        all regions fit (seed windows at 160x120 hold about 100), else of max_points. The calls are
-        queued before any result is read back.
+        The regions go to the batch kernel in calls of one size (`fitting.call_size`: on CPU 4096 // N
+        problems), each of N = 128 points when all regions fit (seed windows at 160x120 hold
+        about 100), else of max_points. Kernels compiled: one per (N, start or multistart) on CPU, each costs
+        5-15 s on CPU the first time. The calls are queued before any result is read back.
         """
         K = len(regions)
         cap = bucket(self.opts.max_points, 32)
         small = max(min(r.size, self.opts.max_points) for r in regions) <= 128
         N = min(128, cap) if small else cap
-        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=size_bound)   # growth extrapolates
+        # the size bound traced, not compiled in: growth (which extrapolates) and the bounded part refits
+        # share one kernel per shape
+        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=jnp.asarray(size_bound))
         pts = np.zeros((K, N, 3))
         msk = np.zeros((K, N), bool)
         for i, r in enumerate(regions):
             if r.size > self.opts.max_points:
                 r = r[np.linspace(0, r.size - 1, self.opts.max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
-        size = batch_bucket(min(K, _BATCHES[-1]))   # one kernel per refit: a long one's last call is full too
+        size = call_size(K, N)   # one kernel per refit: a long one's last call is full too
         rows = np.arange(-(-K // size) * size)
         rows = np.where(rows < K, rows, 0).reshape(-1, size)   # padding: copies of problem 0, dropped below
         pending = [fit_padded(jnp.asarray(pts[r], self.dtype), jnp.asarray(msk[r]),

@@ -244,3 +244,26 @@ def test_bad_options():
         fit(pts, options=FitOptions(), max_steps=3)
     with pytest.raises(ValueError, match="init"):
         fit(np.stack([pts] * 3), init=Superquadric.create(np.ones((2, 3))))
+
+
+def test_a_traced_size_bound_is_the_compiled_one():
+    """`FitOptions.size_bound` as a boolean array scalar is traced (bounded and unbounded fits share one
+    kernel, as segmentation's refits do) and gives the fit of the Python bool it holds: on a sheet of
+    points (an open surface, where the bound decides the lateral size) the two flags differ, and each
+    traced flag matches its compiled twin."""
+    from sqjax.fitting import fit_padded
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1, 1, (1, 128, 2))
+    pts = jnp.asarray(np.concatenate([xy, 0.002 * rng.standard_normal((1, 128, 1))], -1), jnp.float32)
+    mask = jnp.ones((1, 128), bool)
+    out = {}
+    for flag in (True, False):
+        for traced in (False, True):
+            opts = FitOptions(max_steps=10, size_bound=jnp.asarray(flag) if traced else flag)
+            out[flag, traced] = np.asarray(fit_padded(pts, mask, None, opts)[0])
+    for flag in (True, False):
+        np.testing.assert_allclose(out[flag, True], out[flag, False], rtol=1e-5, atol=1e-5)
+    assert not np.allclose(out[True, False], out[False, False], atol=1e-3)
+    with pytest.raises(ValueError, match="size_bound"):
+        FitOptions(size_bound=jnp.ones(3, bool))

@@ -98,9 +98,10 @@ def test_bad_input_type():
 
 
 def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
-    """A refit of K hypotheses (one per growth step, one per seed start) is ceil(K / 64) calls of the
-    batch kernel, all of one of the few fixed batch sizes, so growth steps do not recompile."""
-    from sqjax import recovery
+    """A refit of K hypotheses (one per growth step, one per seed start) is ceil(K / size) calls of the
+    batch kernel, all of one of the few fixed batch sizes (`fitting.call_size`), so growth steps do not
+    recompile."""
+    from sqjax import fitting, recovery
 
     calls, refits = [], []
     real, real_refit = recovery.fit_padded, recovery._Runner.fit
@@ -119,10 +120,12 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     monkeypatch.setattr(recovery._Runner, "fit", record_refit)
     image, _ = paper_scene("two_cylinders", noise=0.002)
     seg = segment(image, merge=False)
-    assert all(made == -(-K // 64) and shapes == 1 for K, made, shapes in refits), refits
-    assert any(K > 64 for K, _, _ in refits)          # the seeds: more than one call
     # points: 128 when every region fits (seed windows), else max_points = 512
-    assert all(K in recovery._BATCHES and N in (128, 512) for K, N in calls), sorted(set(calls))
+    assert all(N in (128, 512) for _, N in calls), sorted(set(calls))
+    assert all(K == fitting.call_size(2, N) for K, N in calls), sorted(set(calls))   # CPU: one chunk size
+    assert all(shapes == 1 for _, _, shapes in refits), refits
+    assert sum(made for _, made, _ in refits) == len(calls)
+    assert any(made > 1 for _, made, _ in refits)      # the seeds: more than one call
     rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().reseed)   # seeds, and each reseeding round
     # the three starts of the seeds, then a step each, then the five starts of the parts' volumes
     assert len(refits) <= 3 * rounds + seg.stats["growth_steps"] + 5
@@ -185,13 +188,18 @@ def test_mosd_unexplained_surface_takes_the_label_it_joins():
     """mOSD test7 (boxes): a superquadric does not follow a real box's rounded rim, so its model leaves
     a third of one box unexplained. With `propagate` those pixels, joined to the box's labelled ones
     without a depth jump, take its label: the labels of explained pixels are unchanged, more pixels
-    are labelled, and no object is detected worse."""
+    are labelled, and no object is detected worse.
+
+    (It also asserted all three boxes correct; that held only on some machines: the segmentation of
+    a real scene changes with float32 rounding, a relative change of 1e-6 in the depths changes the
+    label image of learn2, test7 and test24, benchmarks/RESULTS.md, so one scene's count is no
+    property.)"""
     image, truth = _mosd_image("test7")
     plain, filled = segment(image, propagate=False).labels, segment(image).labels
     assert np.array_equal(filled[plain > 0], plain[plain > 0])
     assert (filled > 0).sum() > (plain > 0).sum() and not np.any(filled[~image.valid])
     before, after = hoover(truth, plain), hoover(truth, filled)
-    assert after.correct >= before.correct and after.correct == after.n_truth == 3, after.to_dict()
+    assert after.correct >= before.correct and after.n_truth == 3, after.to_dict()
 
 
 @pytest.mark.parametrize("name, n_objects", [("test16", 4), ("test35", 5), ("test5", 3)])
