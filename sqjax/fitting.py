@@ -84,7 +84,7 @@ class FitOptions(eqx.Module):
       open surface (a table) by a sheet of any lateral size. On in `fit()`; off in segmentation,
       whose growth step finds a part's extent by admitting the points a model extrapolates to (a
       model that hugs its region never grows across an exactly planar surface). A Python bool is
-      compiled in; a boolean array scalar (`jnp.asarray(True)`) is traced, so bounded and unbounded
+      compiled in; a boolean array scalar (`np.asarray(True)`) is traced, so bounded and unbounded
       fits share one compiled kernel (segmentation's refits do: `_Runner.fit`).
     - `robust`: after the least-squares fit, `robust_rounds` rounds of iteratively reweighted LM
       (`max_steps // 2` steps each, all points): Tukey's biweight of each point's eq. 10 distance d
@@ -103,7 +103,7 @@ class FitOptions(eqx.Module):
     epsilon_range: tuple[float, float] = eqx.field(static=True, default=EPSILON_RANGE)
     robust: bool = eqx.field(static=True, default=False)
     residual: str = eqx.field(static=True, default="distance")
-    size_bound: bool | jax.Array = True
+    size_bound: bool | jax.Array | np.ndarray = True
     robust_rounds: int = eqx.field(static=True, default=3)
 
     def __check_init__(self):
@@ -719,6 +719,7 @@ def _map_problems(points, mask, theta0, opts):
 
 
 _BATCHES = (1, 4, 16, 32, 64)
+"""Problems per call of `fit_padded` on an accelerator (`call_size`)."""
 
 
 def call_size(K: int, N: int) -> int:

@@ -4,8 +4,8 @@ Host orchestration in numpy around jit-compiled batch kernels: the refits of all
 a growth step (`fitting.fit_padded`, warm-started) and the eq. 10 distances (`_pair_distances`). The
 refit of all active hypotheses at a growth step goes in calls of a few fixed numbers of problems
 (`fitting.call_size`) and point counts (128 or max_points), so a growth step recompiles only when it
-first meets a new size. Distances are computed only for the (model, point)
-pairs that are read (a region and the ring of candidates around it), in fixed chunks of `_PAIRS`.
+first meets a new size. Distances are computed only for the (model, point) pairs that are read (a
+region and the ring of candidates around it), in fixed chunks of `_PAIRS`.
 """
 
 from __future__ import annotations
@@ -512,8 +512,8 @@ class _Runner:
 
         The regions go to the batch kernel in calls of one size (`fitting.call_size`: on CPU 4096 // N
         problems), each of N = 128 points when all regions fit (seed windows at 160x120 hold
-        about 100), else of max_points. Kernels compiled: one per (N, start or multistart) on CPU, each costs
-        5-15 s on CPU the first time. The calls are queued before any result is read back.
+        about 100), else of max_points. Kernels compiled on CPU: one per (N, start or multistart),
+        5-15 s each the first time. The calls are queued before any result is read back.
         """
         K = len(regions)
         cap = bucket(self.opts.max_points, 32)
@@ -521,7 +521,7 @@ class _Runner:
         N = min(128, cap) if small else cap
         # the size bound traced, not compiled in: growth (which extrapolates) and the bounded part refits
         # share one kernel per shape
-        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=jnp.asarray(size_bound))
+        opts = FitOptions(max_steps=steps, multistart=theta0 is None, size_bound=np.asarray(size_bound))
         pts = np.zeros((K, N, 3))
         msk = np.zeros((K, N), bool)
         for i, r in enumerate(regions):
