@@ -26,6 +26,7 @@ import numpy as np
 import optimistix as optx
 
 from . import rotation as so3
+from .cache import persistent_kernel
 from .superquadric import (
     EPSILON_RANGE,
     Superquadric,
@@ -735,12 +736,14 @@ def call_size(K: int, N: int) -> int:
     return next((b for b in _BATCHES if b >= K), _BATCHES[-1])
 
 
+@persistent_kernel
 @eqx.filter_jit
 def fit_padded(points, mask, theta0, opts: FitOptions):
     """The batch kernel: points (K, N, 3), mask (K, N), theta0 (K, P) or None -> theta, cost, converged, distance.
 
     One compiled call per (K, N, dtype, options); `fit` pads to power-of-two buckets to keep that set
-    small. `theta` is the global chart [log a, e, rotation vector, t, (Kx, Ky, k, alpha)].
+    small. `theta` is the global chart [log a, e, rotation vector, t, (Kx, Ky, k, alpha)]. With the
+    compilation cache on, its lowered form is kept on disk too (`cache.persistent_kernel`).
     """
     return _map_problems(points, mask, theta0, opts)[:4]
 
@@ -771,7 +774,7 @@ def _fit_problems(points, mask, init, opts):
     return (sq.size, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend), cost, conv, dist, weight, init_ok
 
 
-_fit_kernel = eqx.filter_jit(_fit_problems)
+_fit_kernel = persistent_kernel(eqx.filter_jit(_fit_problems))
 """The kernel `fit` calls: one compile per (padded K, padded N, dtype, options, init or not)."""
 
 

@@ -56,10 +56,84 @@ def test_enable_compilation_cache_sets_jax(tmp_path):
         assert sqjax.enable_compilation_cache(tmp_path / "c") == tmp_path / "c"
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "c")
         assert jax.config.jax_persistent_cache_min_compile_time_secs < 1.0
+        from sqjax import cache
+        assert cache._KERNEL_DIR == tmp_path / "c" / "sqjax-kernels"
         assert sqjax.enable_compilation_cache("/proc/sqjax-test/cache") is None   # unusable: no failure
     finally:
         jax.config.update("jax_compilation_cache_dir", before[0])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
+        from sqjax import cache
+        cache.set_kernel_dir(None)
+
+
+@pytest.fixture
+def kernel_dir(tmp_path):
+    from sqjax import cache
+
+    yield cache.set_kernel_dir(tmp_path / "kernels")
+    cache.set_kernel_dir(None)
+
+
+def _traces(monkeypatch):
+    """A counter of how often the fit kernel's body is traced."""
+    from sqjax import fitting
+
+    count = [0]
+    real = fitting._map_problems
+
+    def counted(*a):
+        count[0] += 1
+        return real(*a)
+
+    monkeypatch.setattr(fitting, "_map_problems", counted)
+    return count
+
+
+def test_a_kept_kernel_gives_the_traced_kernels_results_without_tracing(kernel_dir, monkeypatch):
+    """With the kernel folder set, `fit` exports its kernel once; a later process (here: the
+    in-memory table cleared) loads it without tracing, and every output is the traced kernel's, bit
+    for bit; a corrupt file is exported again."""
+    import jax
+
+    from sqjax import cache
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(2, 150, 3)) * (0.5, 0.3, 0.2)
+    jax.clear_caches()                         # nothing traced yet in this process
+    traces = _traces(monkeypatch)
+    first = sqjax.fit(pts)
+    files = list(kernel_dir.rglob("*.jaxexport"))
+    assert len(files) == 1 and traces[0] == 1
+    cache._LOADED.clear()                      # a new process: only the disk is left
+    jax.clear_caches()
+    second = sqjax.fit(pts)
+    assert traces[0] == 1, "the kept kernel was traced again"
+    files[0].write_bytes(b"not a module")
+    cache._LOADED.clear()
+    third = sqjax.fit(pts)
+    assert traces[0] == 2 and files[0].stat().st_size > 100   # exported again, and rewritten
+    cache.set_kernel_dir(None)
+    direct = sqjax.fit(pts)                    # the kernel as traced and compiled, no module
+    for out in (first, second, third):
+        for a, b in zip(jax_leaves(direct), jax_leaves(out)):
+            np.testing.assert_array_equal(a, b)
+
+
+def jax_leaves(tree):
+    import jax
+
+    return [np.asarray(v) for v in jax.tree.leaves(tree)]
+
+
+def test_a_kept_kernel_is_bypassed_under_transformations(kernel_dir):
+    """Under `jax.grad` the arguments are tracers: the kernel runs as traced (gradients unchanged)."""
+    import jax
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(4)
+    pts = jnp.asarray(rng.normal(size=(120, 3)) * (0.5, 0.3, 0.2), jnp.float32)
+    g = jax.grad(lambda p: jnp.sum(sqjax.fit(p).superquadric.size))(pts)
+    assert np.isfinite(np.asarray(g)).all() and not list(kernel_dir.rglob("*.jaxexport"))
 
 
 def test_default_cache_dir(monkeypatch, tmp_path):
