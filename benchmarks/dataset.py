@@ -46,17 +46,34 @@ def mosd_truth(labels):
 
 
 def _params(seg):
-    return [np.concatenate([np.ravel(np.asarray(v)) for v in (p.superquadric.size, p.superquadric.epsilon,
-                                                                p.superquadric.rotation, p.superquadric.translation)])
-            for p in seg.parts]
+    return [
+        np.concatenate(
+            [
+                np.ravel(np.asarray(v))
+                for v in (
+                    p.superquadric.size,
+                    p.superquadric.epsilon,
+                    p.superquadric.rotation,
+                    p.superquadric.translation,
+                )
+            ]
+        )
+        for p in seg.parts
+    ]
 
 
 def _scene_row(name, seg, image):
     from sqjax import hoover
 
     s = hoover(mosd_truth(image.labels), seg.labels)
-    return {"name": name, "parts": len(seg.parts), "run_seconds": seg.timings["run"],
-            "compile_seconds": seg.timings["compile"], "truth_parts": s.n_truth, "correct": s.correct}
+    return {
+        "name": name,
+        "parts": len(seg.parts),
+        "run_seconds": seg.timings["run"],
+        "compile_seconds": seg.timings["compile"],
+        "truth_parts": s.n_truth,
+        "correct": s.correct,
+    }
 
 
 def run_mode(mode, files, args, workdir):
@@ -67,6 +84,7 @@ def run_mode(mode, files, args, workdir):
     t0 = time.perf_counter()
     rows, segs, extra = [], {}, {}
     if mode in ("serial", "threads"):
+
         def one(f):
             try:
                 image = sqjax.read_range_image(f).subsample(args.step)
@@ -94,46 +112,81 @@ def run_mode(mode, files, args, workdir):
             from distributed import Client, LocalCluster
 
             c0 = time.perf_counter()
-            cluster = LocalCluster(n_workers=args.workers, processes=True, threads_per_worker=1,
-                                   dashboard_address=None)
+            cluster = LocalCluster(n_workers=args.workers, processes=True, threads_per_worker=1, dashboard_address=None)
             client = Client(cluster)
             client.wait_for_workers(args.workers)
             extra.update(workers=args.workers, cluster_start_seconds=time.perf_counter() - c0)
             kw["scheduler"] = client
             t0 = time.perf_counter()
-        results = segment_many(files, Path(workdir) / mode, subsample=args.step, truth=mosd_truth, resume=False,
-                               progress=False, **kw)
+        results = segment_many(
+            files, Path(workdir) / mode, subsample=args.step, truth=mosd_truth, resume=False, progress=False, **kw
+        )
         if mode == "dask":
             client.close()
             cluster.close()
         for r in results:
-            rows.append({k: r.row[k] for k in ("name", "status", "parts", "run_seconds", "compile_seconds",
-                                                "truth_parts", "correct", "error")})
+            rows.append(
+                {
+                    k: r.row[k]
+                    for k in (
+                        "name",
+                        "status",
+                        "parts",
+                        "run_seconds",
+                        "compile_seconds",
+                        "truth_parts",
+                        "correct",
+                        "error",
+                    )
+                }
+            )
             if r.segmentation is not None:
                 segs[r.name] = r.segmentation
     wall = time.perf_counter() - t0
-    np.savez(Path(workdir) / f"{mode}.npz",
-             **{f"labels/{k}": s.labels for k, s in segs.items()},
-             **{f"params/{k}": np.stack(_params(s)) if s.parts else np.zeros((0, 15)) for k, s in segs.items()})
+    np.savez(
+        Path(workdir) / f"{mode}.npz",
+        **{f"labels/{k}": s.labels for k, s in segs.items()},
+        **{f"params/{k}": np.stack(_params(s)) if s.parts else np.zeros((0, 15)) for k, s in segs.items()},
+    )
     done = [r for r in rows if r["status"] == "done"]
     run = sum(r["run_seconds"] for r in done)
-    return {"mode": mode, "wall_seconds": wall, "scenes": len(rows), "done": len(done),
-            "failed": [f"{r['name']}: {r['error']}" for r in rows if r["status"] == "failed"],
-            "sum_run_seconds": run, "sum_compile_seconds": sum(r["compile_seconds"] for r in done),
-            "wall_over_run": wall / run if run else float("nan"),
-            "scenes_per_minute": 60 * len(done) / wall, "correct": sum(r["correct"] for r in done),
-            "truth_parts": sum(r["truth_parts"] for r in done), "rows": rows, **extra}
+    return {
+        "mode": mode,
+        "wall_seconds": wall,
+        "scenes": len(rows),
+        "done": len(done),
+        "failed": [f"{r['name']}: {r['error']}" for r in rows if r["status"] == "failed"],
+        "sum_run_seconds": run,
+        "sum_compile_seconds": sum(r["compile_seconds"] for r in done),
+        "wall_over_run": wall / run if run else float("nan"),
+        "scenes_per_minute": 60 * len(done) / wall,
+        "correct": sum(r["correct"] for r in done),
+        "truth_parts": sum(r["truth_parts"] for r in done),
+        "rows": rows,
+        **extra,
+    }
 
 
 def compare(workdir, a, b):
     """Scenes of modes a and b with identical labels and equal parameters, of those both finished."""
     A, B = np.load(Path(workdir) / f"{a}.npz"), np.load(Path(workdir) / f"{b}.npz")
-    names = sorted({k.split("/", 1)[1] for k in A.files if k.startswith("labels/")} &
-                   {k.split("/", 1)[1] for k in B.files if k.startswith("labels/")})
-    same = [n for n in names if np.array_equal(A[f"labels/{n}"], B[f"labels/{n}"]) and
-            A[f"params/{n}"].shape == B[f"params/{n}"].shape and np.array_equal(A[f"params/{n}"], B[f"params/{n}"])]
-    return {"modes": [a, b], "compared": len(names), "identical": len(same),
-            "different": [n for n in names if n not in same]}
+    names = sorted(
+        {k.split("/", 1)[1] for k in A.files if k.startswith("labels/")}
+        & {k.split("/", 1)[1] for k in B.files if k.startswith("labels/")}
+    )
+    same = [
+        n
+        for n in names
+        if np.array_equal(A[f"labels/{n}"], B[f"labels/{n}"])
+        and A[f"params/{n}"].shape == B[f"params/{n}"].shape
+        and np.array_equal(A[f"params/{n}"], B[f"params/{n}"])
+    ]
+    return {
+        "modes": [a, b],
+        "compared": len(names),
+        "identical": len(same),
+        "different": [n for n in names if n not in same],
+    }
 
 
 def main(argv=None):
@@ -150,7 +203,7 @@ def main(argv=None):
     ap.add_argument("--_files", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
 
-    if args._mode:   # a child: one mode, result as JSON in the workdir
+    if args._mode:  # a child: one mode, result as JSON in the workdir
         files = json.loads(Path(args._files).read_text())
         res = run_mode(args._mode, files, args, args._workdir)
         (Path(args._workdir) / f"{args._mode}.json").write_text(json.dumps(res, default=float))
@@ -161,39 +214,66 @@ def main(argv=None):
         sys.exit(f"mOSD not found under {DATA / 'mosd'} (set SQJAX_DATA)")
     files = files[: args.limit] if args.limit else files
     workdir = Path(tempfile.mkdtemp(prefix="sqjax-dataset-"))
-    if not args.no_corrupt:   # a truncated copy: the reader must fail on it, naming it
+    if not args.no_corrupt:  # a truncated copy: the reader must fail on it, naming it
         raw = Path(files[0]).read_bytes()
         (workdir / "corrupt.pcd").write_bytes(raw[: len(raw) // 3])
         files = files[:1] + [str(workdir / "corrupt.pcd")] + files[1:]
     (workdir / "files.json").write_text(json.dumps(files))
     modes = [m for m in args.modes.split(",") if m]
-    results = {"machine": {"cores": os.cpu_count(), "python": platform.python_version(),
-                           "load_average_at_start": os.getloadavg()},
-               "command": "python benchmarks/dataset.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-               "date": time.strftime("%Y-%m-%d %H:%M"), "step": args.step, "inputs": len(files), "modes": {}}
+    results = {
+        "machine": {
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            "load_average_at_start": os.getloadavg(),
+        },
+        "command": "python benchmarks/dataset.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "step": args.step,
+        "inputs": len(files),
+        "modes": {},
+    }
     for m in modes:
-        cmd = [sys.executable, __file__, "--_mode", m, "--_workdir", str(workdir), "--_files",
-               str(workdir / "files.json"), "--step", str(args.step), "--workers", str(args.workers),
-               "--threads", str(args.threads)]
+        cmd = [
+            sys.executable,
+            __file__,
+            "--_mode",
+            m,
+            "--_workdir",
+            str(workdir),
+            "--_files",
+            str(workdir / "files.json"),
+            "--step",
+            str(args.step),
+            "--workers",
+            str(args.workers),
+            "--threads",
+            str(args.threads),
+        ]
         print(f"{m}: {len(files)} inputs ...", flush=True)
         subprocess.run(cmd, check=True)
         results["modes"][m] = json.loads((workdir / f"{m}.json").read_text())
     results["identical"] = [compare(workdir, "serial", m) for m in modes if m != "serial" and "serial" in modes]
     results["machine"]["load_average_at_end"] = os.getloadavg()
 
-    print(f"\n{'mode':8s} {'done':>5s} {'failed':>6s} {'wall s':>8s} {'sum run s':>9s} {'compile s':>9s} "
-          f"{'wall/run':>8s} {'scenes/min':>10s} {'correct':>9s}")
+    print(
+        f"\n{'mode':8s} {'done':>5s} {'failed':>6s} {'wall s':>8s} {'sum run s':>9s} {'compile s':>9s} "
+        f"{'wall/run':>8s} {'scenes/min':>10s} {'correct':>9s}"
+    )
     for m, r in results["modes"].items():
-        print(f"{m:8s} {r['done']:5d} {len(r['failed']):6d} {r['wall_seconds']:8.1f} {r['sum_run_seconds']:9.1f} "
-              f"{r['sum_compile_seconds']:9.1f} {r['wall_over_run']:8.2f} {r['scenes_per_minute']:10.2f} "
-              f"{r['correct']:4d}/{r['truth_parts']:<4d}")
+        print(
+            f"{m:8s} {r['done']:5d} {len(r['failed']):6d} {r['wall_seconds']:8.1f} {r['sum_run_seconds']:9.1f} "
+            f"{r['sum_compile_seconds']:9.1f} {r['wall_over_run']:8.2f} {r['scenes_per_minute']:10.2f} "
+            f"{r['correct']:4d}/{r['truth_parts']:<4d}"
+        )
         if r.get("note"):
             print(f"         note: {r['note']}")
         for f in r["failed"]:
             print(f"         failed: {f[:150]}")
     for c in results["identical"]:
-        print(f"{c['modes'][1]} vs serial: {c['identical']} of {c['compared']} scenes identical (labels and "
-              f"parameters){'; different: ' + ', '.join(c['different']) if c['different'] else ''}")
+        print(
+            f"{c['modes'][1]} vs serial: {c['identical']} of {c['compared']} scenes identical (labels and "
+            f"parameters){'; different: ' + ', '.join(c['different']) if c['different'] else ''}"
+        )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1, default=float))
     print(f"wrote {args.out}")

@@ -99,15 +99,27 @@ def _parse(argv):
     ap.add_argument("--devices", type=int, default=os.cpu_count() or 1, help="JAX CPU devices (1 = none split)")
     ap.add_argument("--seconds", type=float, default=2.0, help="steady-state timing budget per configuration")
     ap.add_argument("--out", default="benchmarks/out/fit.json")
-    ap.add_argument("--suites", nargs="+", default=["speed", "outliers", "loop", "slabs", "deform"],
-                    choices=["speed", "outliers", "loop", "slabs", "deform"])
-    ap.add_argument("--residual", default="distance", choices=["distance", "size_weighted"],
-                    help="FitOptions.residual of every sqjax fit (the scipy baseline keeps eq. 7)")
+    ap.add_argument(
+        "--suites",
+        nargs="+",
+        default=["speed", "outliers", "loop", "slabs", "deform"],
+        choices=["speed", "outliers", "loop", "slabs", "deform"],
+    )
+    ap.add_argument(
+        "--residual",
+        default="distance",
+        choices=["distance", "size_weighted"],
+        help="FitOptions.residual of every sqjax fit (the scipy baseline keeps eq. 7)",
+    )
     ap.add_argument("--outlier-k", type=int, default=200, help="problems per outlier fraction")
     ap.add_argument("--loop", type=int, default=200, help="problems (each with its own N) in the loop suite")
-    ap.add_argument("--cache", metavar="DIR", help="turn on the persistent compilation cache in DIR "
-                    "(`sqjax.enable_compilation_cache`, as the CLI does): a second run of the same command "
-                    "loads its kernels instead of compiling them")
+    ap.add_argument(
+        "--cache",
+        metavar="DIR",
+        help="turn on the persistent compilation cache in DIR "
+        "(`sqjax.enable_compilation_cache`, as the CLI does): a second run of the same command "
+        "loads its kernels instead of compiling them",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.ks, args.ns, args.dtypes = [16], [256, 1024], ["float32"]
@@ -116,9 +128,10 @@ def _parse(argv):
 
 
 ARGS = _parse(sys.argv[1:]) if __name__ == "__main__" else None
-if ARGS is not None and ARGS.devices > 1:   # must precede the first import of jax
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                               f" --xla_force_host_platform_device_count={ARGS.devices}").strip()
+if ARGS is not None and ARGS.devices > 1:  # must precede the first import of jax
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={ARGS.devices}"
+    ).strip()
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -129,7 +142,7 @@ import sqjax  # noqa: E402
 from machine import cpu_name  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from sqjax.fitting import FitOptions  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)   # float64 rows; float32 stays the default of fit()
+jax.config.update("jax_enable_x64", True)  # float64 rows; float32 stays the default of fit()
 if ARGS is not None and ARGS.cache:
     sqjax.enable_compilation_cache(ARGS.cache)
 
@@ -163,8 +176,9 @@ def one_view(sq, n_points: int, rng) -> np.ndarray:
     mean size (`NOISE`)."""
     view = rng.standard_normal(3)
     view = np.asarray(sq.translation) + 10 * view / np.linalg.norm(view)
-    return sqjax.sample_surface(sq, n_points, seed=int(rng.integers(2**31)), noise=NOISE * float(np.mean(sq.size)),
-                                viewpoint=view)
+    return sqjax.sample_surface(
+        sq, n_points, seed=int(rng.integers(2**31)), noise=NOISE * float(np.mean(sq.size)), viewpoint=view
+    )
 
 
 def batch_sq(params) -> sqjax.Superquadric:
@@ -203,10 +217,10 @@ def residual_and_jacobian(p, pts):
     e1, e2 = e
     R, dR = _rotation_and_derivatives(*p[5:8])
     q = pts - p[8:11]
-    x = q @ R                                              # model frame, rows
+    x = q @ R  # model frame, rows
     a = np.exp(la)
     ax = np.maximum(np.abs(x), 1e-12 * a)
-    lx = np.log(ax) - la                                   # log |x_i / a_i|
+    lx = np.log(ax) - la  # log |x_i / a_i|
     A, B, C = (2 / e2) * lx[:, 0], (2 / e2) * lx[:, 1], (2 / e1) * lx[:, 2]
     s = np.logaddexp(A, B)
     u = (e2 / e1) * s
@@ -227,7 +241,7 @@ def residual_and_jacobian(p, pts):
     J[:, 0:3] = 0.5 * f[:, None] - scale * F[:, None] * dl
     J[:, 3] = scale * F * de1 * inside[0]
     J[:, 4] = scale * F * de2 * inside[1]
-    gf = scale * F[:, None] * g                            # df / d(model-frame x)
+    gf = scale * F[:, None] * g  # df / d(model-frame x)
     for k in range(3):
         J[:, 5 + k] = np.sum(gf * (q @ dR[k]), 1)
     J[:, 8:11] = -gf @ R.T
@@ -250,8 +264,13 @@ def moment_start(pts) -> np.ndarray:
 
 def scipy_fit(pts):
     p0 = moment_start(pts)
-    res = least_squares(lambda p: residual_and_jacobian(p, pts)[0], p0,
-                        jac=lambda p: residual_and_jacobian(p, pts)[1], method="lm", x_scale="jac")
+    res = least_squares(
+        lambda p: residual_and_jacobian(p, pts)[0],
+        p0,
+        jac=lambda p: residual_and_jacobian(p, pts)[1],
+        method="lm",
+        x_scale="jac",
+    )
     p = res.x
     R = Rotation.from_euler("ZYZ", p[5:8]).as_matrix()
     return (np.exp(p[0:3]), np.clip(p[3:5], *EPS_RANGE), R, p[8:11]), res.nfev
@@ -263,10 +282,12 @@ def scipy_fit(pts):
 
 def time_sqjax(points, options: FitOptions, dtype, budget: float):
     """(first-call seconds, steady-state median seconds, Fit)."""
+
     def call():
         out = sqjax.fit(points, options=options, dtype=dtype)
         jax.block_until_ready(out)
         return out
+
     t0 = time.perf_counter()
     out = call()
     first = time.perf_counter() - t0
@@ -310,17 +331,30 @@ def suite_outliers(args, results):
         pts = with_outliers(clean, frac, seed=int(frac * 100))
         sp_rate, sp_iou = _scipy_rate(pts[:S], truth[:S])
         for robust in (True, False):
-            first, steady, out = time_sqjax(pts, FitOptions(robust=robust, residual=args.residual), "float32",
-                                            args.seconds)
+            first, steady, out = time_sqjax(
+                pts, FitOptions(robust=robust, residual=args.residual), "float32", args.seconds
+            )
             sc = iou(truth, out.superquadric)
-            row = {"suite": "outliers", "fraction": frac, "robust": robust, "k": K, "n": n,
-                   "iou_median": float(np.median(sc)), "gross_failures": float(np.mean(sc < 0.5)),
-                   "fits_per_s": K / steady, "speedup_vs_scipy": (K / steady) / sp_rate,
-                   "scipy_iou_median": float(np.median(sp_iou)), "scipy_gross": float(np.mean(sp_iou < 0.5))}
+            row = {
+                "suite": "outliers",
+                "fraction": frac,
+                "robust": robust,
+                "k": K,
+                "n": n,
+                "iou_median": float(np.median(sc)),
+                "gross_failures": float(np.mean(sc < 0.5)),
+                "fits_per_s": K / steady,
+                "speedup_vs_scipy": (K / steady) / sp_rate,
+                "scipy_iou_median": float(np.median(sp_iou)),
+                "scipy_gross": float(np.mean(sp_iou < 0.5)),
+            }
             results["suites"].append(row)
-            print(f"outliers {frac:4.0%} robust={robust!s:5s}: IoU median {row['iou_median']:.3f} gross "
-                  f"{row['gross_failures']:5.1%}  {row['fits_per_s']:7.1f} fits/s x{row['speedup_vs_scipy']:5.1f} "
-                  f"scipy (scipy: IoU {row['scipy_iou_median']:.3f}, gross {row['scipy_gross']:.1%})", flush=True)
+            print(
+                f"outliers {frac:4.0%} robust={robust!s:5s}: IoU median {row['iou_median']:.3f} gross "
+                f"{row['gross_failures']:5.1%}  {row['fits_per_s']:7.1f} fits/s x{row['speedup_vs_scipy']:5.1f} "
+                f"scipy (scipy: IoU {row['scipy_iou_median']:.3f}, gross {row['scipy_gross']:.1%})",
+                flush=True,
+            )
 
 
 def suite_loop(args, results):
@@ -348,20 +382,37 @@ def suite_loop(args, results):
     sp_rate = S / (time.perf_counter() - t0)
     sp_iou = iou(truth[:S], batch_sq([x[0] for x in sp]))
     buckets = sorted({sqjax.fitting.bucket(int(m)) for m in ns})
-    row = {"suite": "loop", "problems": M, "n_range": [int(ns[0]), int(ns[-1])], "buckets": buckets,
-           "fits_per_s_with_compile": M / total, "fits_per_s_warm": M / warm,
-           "speedup_vs_scipy_with_compile": (M / total) / sp_rate, "speedup_vs_scipy_warm": (M / warm) / sp_rate,
-           "iou_median": float(np.median(sc)), "gross_failures": float(np.mean(sc < 0.5)),
-           "scipy_fits_per_s": sp_rate, "scipy_iou_median": float(np.median(sp_iou))}
+    row = {
+        "suite": "loop",
+        "problems": M,
+        "n_range": [int(ns[0]), int(ns[-1])],
+        "buckets": buckets,
+        "fits_per_s_with_compile": M / total,
+        "fits_per_s_warm": M / warm,
+        "speedup_vs_scipy_with_compile": (M / total) / sp_rate,
+        "speedup_vs_scipy_warm": (M / warm) / sp_rate,
+        "iou_median": float(np.median(sc)),
+        "gross_failures": float(np.mean(sc < 0.5)),
+        "scipy_fits_per_s": sp_rate,
+        "scipy_iou_median": float(np.median(sp_iou)),
+    }
     results["suites"].append(row)
-    print(f"loop {M} problems, N {ns[0]}..{ns[-1]} ({len(buckets)} buckets): {row['fits_per_s_with_compile']:.1f} "
-          f"fits/s with compile (x{row['speedup_vs_scipy_with_compile']:.2f} scipy), {row['fits_per_s_warm']:.1f} "
-          f"warm (x{row['speedup_vs_scipy_warm']:.2f}); IoU median {row['iou_median']:.3f} gross "
-          f"{row['gross_failures']:.1%}; scipy {sp_rate:.1f} fits/s IoU {row['scipy_iou_median']:.3f}", flush=True)
+    print(
+        f"loop {M} problems, N {ns[0]}..{ns[-1]} ({len(buckets)} buckets): {row['fits_per_s_with_compile']:.1f} "
+        f"fits/s with compile (x{row['speedup_vs_scipy_with_compile']:.2f} scipy), {row['fits_per_s_warm']:.1f} "
+        f"warm (x{row['speedup_vs_scipy_warm']:.2f}); IoU median {row['iou_median']:.3f} gross "
+        f"{row['gross_failures']:.1%}; scipy {sp_rate:.1f} fits/s IoU {row['scipy_iou_median']:.3f}",
+        flush=True,
+    )
 
 
-SLABS = [((2.0, 1.5, 0.30), (0.5, 0.33)), ((2.4, 1.8, 0.35), (0.4, 0.40)), ((1.5, 1.5, 0.41), (0.3, 0.49)),
-         ((2.2, 1.6, 0.38), (0.6, 0.45)), ((1.8, 1.7, 0.33), (0.35, 0.36))]
+SLABS = [
+    ((2.0, 1.5, 0.30), (0.5, 0.33)),
+    ((2.4, 1.8, 0.35), (0.4, 0.40)),
+    ((1.5, 1.5, 0.41), (0.3, 0.49)),
+    ((2.2, 1.6, 0.38), (0.6, 0.45)),
+    ((1.8, 1.7, 0.33), (0.35, 0.36)),
+]
 """The five thin boxy slabs of issue 14: (sizes, (e1, e2)); the smallest size along z, seen along z."""
 
 
@@ -370,9 +421,10 @@ def slab_problems(n=400, seed=0):
     truth, pts = [], []
     for size, eps in SLABS:
         sq = sqjax.Superquadric.create(size, eps)
-        view = np.array([0.3, -0.2, 10.0])            # face-on: the view axis is the thin axis
-        pts.append(sqjax.sample_surface(sq, n, seed=int(rng.integers(2**31)), noise=NOISE * np.mean(size),
-                                        viewpoint=view))
+        view = np.array([0.3, -0.2, 10.0])  # face-on: the view axis is the thin axis
+        pts.append(
+            sqjax.sample_surface(sq, n, seed=int(rng.integers(2**31)), noise=NOISE * np.mean(size), viewpoint=view)
+        )
         truth.append((np.array(size), np.array(eps), np.eye(3), np.zeros(3)))
     return truth, np.stack(pts)
 
@@ -383,20 +435,29 @@ def suite_slabs(args, results):
         out = sqjax.fit(pts, robust=robust, residual=args.residual)
         size = np.asarray(out.superquadric.size)
         R = np.asarray(out.superquadric.rotation)
-        thick = np.array([size[k][np.argmax(np.abs(R[k][2]))] for k in range(len(SLABS))])   # along world z
-        res = sqjax.signed_distance if args.residual == "distance" else sqjax.residual   # the cost the fit minimised
-        f_true = np.array([np.sum(np.asarray(res(batch_sq([truth[k]]), pts[k][None])) ** 2)
-                           for k in range(len(SLABS))])
-        f_fit = np.array([np.sum(np.asarray(res(jax.tree.map(lambda v, k=k: v[k], out.superquadric),
-                                                pts[k])) ** 2) for k in range(len(SLABS))])
+        thick = np.array([size[k][np.argmax(np.abs(R[k][2]))] for k in range(len(SLABS))])  # along world z
+        res = sqjax.signed_distance if args.residual == "distance" else sqjax.residual  # the cost the fit minimised
+        f_true = np.array([np.sum(np.asarray(res(batch_sq([truth[k]]), pts[k][None])) ** 2) for k in range(len(SLABS))])
+        f_fit = np.array(
+            [
+                np.sum(np.asarray(res(jax.tree.map(lambda v, k=k: v[k], out.superquadric), pts[k])) ** 2)
+                for k in range(len(SLABS))
+            ]
+        )
         sc = iou(truth, out.superquadric)
-        row = {"suite": "slabs", "robust": robust,
-               "thickness_ratio": (thick / np.array([s[0][2] for s in SLABS])).tolist(),
-               "cost_fit_over_cost_truth": (f_fit / f_true).tolist(), "iou": sc.tolist()}
+        row = {
+            "suite": "slabs",
+            "robust": robust,
+            "thickness_ratio": (thick / np.array([s[0][2] for s in SLABS])).tolist(),
+            "cost_fit_over_cost_truth": (f_fit / f_true).tolist(),
+            "iou": sc.tolist(),
+        }
         results["suites"].append(row)
-        print(f"slabs robust={robust!s:5s}: thickness fit/true {np.round(row['thickness_ratio'], 2).tolist()}  "
-              f"cost fit/truth {np.round(row['cost_fit_over_cost_truth'], 3).tolist()}  IoU {np.round(sc, 3).tolist()}",
-              flush=True)
+        print(
+            f"slabs robust={robust!s:5s}: thickness fit/true {np.round(row['thickness_ratio'], 2).tolist()}  "
+            f"cost fit/truth {np.round(row['cost_fit_over_cost_truth'], 3).tolist()}  IoU {np.round(sc, 3).tolist()}",
+            flush=True,
+        )
 
 
 def suite_deform(args, results):
@@ -406,23 +467,40 @@ def suite_deform(args, results):
     taper = np.abs(np.asarray(out.superquadric.taper)).max(-1)
     k = np.asarray(out.superquadric.bend)[:, 0] * np.asarray(out.superquadric.size).max(-1)
     sc = iou(truth, out.superquadric)
-    row = {"suite": "deform", "k": K, "undeformed_taper_below_0.05": float(np.mean(taper < 0.05)),
-           "undeformed_bend_ka_below_0.05": float(np.mean(k < 0.05)), "taper_at_bound": float(np.mean(taper > 0.999)),
-           "iou_median": float(np.median(sc))}
+    row = {
+        "suite": "deform",
+        "k": K,
+        "undeformed_taper_below_0.05": float(np.mean(taper < 0.05)),
+        "undeformed_bend_ka_below_0.05": float(np.mean(k < 0.05)),
+        "taper_at_bound": float(np.mean(taper > 0.999)),
+        "iou_median": float(np.median(sc)),
+    }
     results["suites"].append(row)
-    print(f"deform on undeformed views: |taper| < 0.05 in {row['undeformed_taper_below_0.05']:.0%}, k a < 0.05 in "
-          f"{row['undeformed_bend_ka_below_0.05']:.0%}, |taper| at the bound in {row['taper_at_bound']:.0%}; "
-          f"IoU median {row['iou_median']:.3f}", flush=True)
+    print(
+        f"deform on undeformed views: |taper| < 0.05 in {row['undeformed_taper_below_0.05']:.0%}, k a < 0.05 in "
+        f"{row['undeformed_bend_ka_below_0.05']:.0%}, |taper| at the bound in {row['taper_at_bound']:.0%}; "
+        f"IoU median {row['iou_median']:.3f}",
+        flush=True,
+    )
     for kind in ("tapered", "bent"):
         truth_sq, pts = deformed_problems(200, K, kind, seed=16)
         out = sqjax.fit(pts, deform=True, residual=args.residual)
-        sc = sqjax.volume_iou_batch(truth_sq, jax.tree.map(lambda v: np.asarray(v, np.float32), out.superquadric),
-                                    n=20_000)
-        row = {"suite": f"deform_{kind}", "k": K, "iou_median": float(np.median(sc)),
-               "iou_above_0.95": float(np.mean(sc >= 0.95)), "gross_failures": float(np.mean(sc < 0.5))}
+        sc = sqjax.volume_iou_batch(
+            truth_sq, jax.tree.map(lambda v: np.asarray(v, np.float32), out.superquadric), n=20_000
+        )
+        row = {
+            "suite": f"deform_{kind}",
+            "k": K,
+            "iou_median": float(np.median(sc)),
+            "iou_above_0.95": float(np.mean(sc >= 0.95)),
+            "gross_failures": float(np.mean(sc < 0.5)),
+        }
         results["suites"].append(row)
-        print(f"deform on {kind} truths: IoU median {row['iou_median']:.3f}, >= 0.95 in {row['iou_above_0.95']:.0%}, "
-              f"gross {row['gross_failures']:.0%}", flush=True)
+        print(
+            f"deform on {kind} truths: IoU median {row['iou_median']:.3f}, >= 0.95 in {row['iou_above_0.95']:.0%}, "
+            f"gross {row['gross_failures']:.0%}",
+            flush=True,
+        )
 
 
 def deformed_problems(n_points: int, count: int, kind: str, seed: int = 0):
@@ -435,8 +513,9 @@ def deformed_problems(n_points: int, count: int, kind: str, seed: int = 0):
         eps = rng.uniform(0.3, 1.2, 2)
         taper = rng.uniform(0.3, 0.7, 2) * rng.choice([-1, 1], 2) if kind == "tapered" else np.zeros(2)
         bend = (rng.uniform(0.3, 0.8) / size[2], rng.uniform(-np.pi, np.pi)) if kind == "bent" else (0.0, 0.0)
-        sq = sqjax.Superquadric.create(size, eps, rotation=random_rotation(rng), translation=rng.uniform(-1, 1, 3),
-                                       taper=taper, bend=bend)
+        sq = sqjax.Superquadric.create(
+            size, eps, rotation=random_rotation(rng), translation=rng.uniform(-1, 1, 3), taper=taper, bend=bend
+        )
         pts.append(one_view(sq, n_points, rng))
         sqs.append(sq)
     return jax.tree.map(lambda *v: np.stack([np.asarray(x) for x in v]), *sqs), np.stack(pts)
@@ -444,59 +523,98 @@ def deformed_problems(n_points: int, count: int, kind: str, seed: int = 0):
 
 def main():
     args = ARGS or _parse([])
-    results = {"machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "jax_devices": len(jax.local_devices()),
-                           "python": platform.python_version(), "jax": jax.__version__,
-                           "backend": jax.default_backend()},
-               "command": "python " + " ".join([sys.argv[0]] + sys.argv[1:]), "date": time.strftime("%Y-%m-%d"),
-               "residual": args.residual, "cache": args.cache, "rows": [], "scipy": [], "suites": []}
+    results = {
+        "machine": {
+            "cpu": cpu_name(),
+            "cores": os.cpu_count(),
+            "jax_devices": len(jax.local_devices()),
+            "python": platform.python_version(),
+            "jax": jax.__version__,
+            "backend": jax.default_backend(),
+        },
+        "command": "python " + " ".join([sys.argv[0]] + sys.argv[1:]),
+        "date": time.strftime("%Y-%m-%d"),
+        "residual": args.residual,
+        "cache": args.cache,
+        "rows": [],
+        "scipy": [],
+        "suites": [],
+    }
     for name in ("outliers", "loop", "slabs", "deform"):
         if name in args.suites:
             globals()[f"suite_{name}"](args, results)
     kmax = max(args.ks)
-    for n in (args.ns if "speed" in args.suites else []):
+    for n in args.ns if "speed" in args.suites else []:
         truth, pts = problems(n, max(kmax, args.scipy), seed=n)
         # the baseline: the first --scipy problems, one by one
         t0 = time.perf_counter()
         sp = [scipy_fit(p) for p in pts[: args.scipy]]
         sp_time = (time.perf_counter() - t0) / args.scipy
         sp_iou = iou(truth[: args.scipy], batch_sq([s[0] for s in sp]))
-        srow = {"n": n, "problems": args.scipy, "fits_per_s": 1.0 / sp_time,
-                "nfev_median": float(np.median([s[1] for s in sp])),
-                "iou_median": float(np.median(sp_iou)), "gross_failures": float(np.mean(sp_iou < 0.5))}
+        srow = {
+            "n": n,
+            "problems": args.scipy,
+            "fits_per_s": 1.0 / sp_time,
+            "nfev_median": float(np.median([s[1] for s in sp])),
+            "iou_median": float(np.median(sp_iou)),
+            "gross_failures": float(np.mean(sp_iou < 0.5)),
+        }
         results["scipy"].append(srow)
-        print(f"scipy lm   N={n:5d}: {srow['fits_per_s']:8.1f} fits/s  nfev {srow['nfev_median']:.0f}  "
-              f"IoU median {srow['iou_median']:.3f}  gross {srow['gross_failures']:.0%}", flush=True)
+        print(
+            f"scipy lm   N={n:5d}: {srow['fits_per_s']:8.1f} fits/s  nfev {srow['nfev_median']:.0f}  "
+            f"IoU median {srow['iou_median']:.3f}  gross {srow['gross_failures']:.0%}",
+            flush=True,
+        )
         for dtype in args.dtypes:
             for mode in ("multistart", "single"):
-                options = FitOptions(multistart=mode == "multistart", robust=False,   # fit()'s default
-                                     residual=args.residual)
+                options = FitOptions(
+                    multistart=mode == "multistart",
+                    robust=False,  # fit()'s default
+                    residual=args.residual,
+                )
                 for k in args.ks:
                     first, steady, out = time_sqjax(pts[:k], options, dtype, args.seconds)
                     scores = iou(truth[:k], out.superquadric)
                     # the same problems as the baseline, for an accuracy comparison on equal terms
-                    row = {"n": n, "k": k, "dtype": dtype, "mode": mode,
-                           "compile_s": max(first - steady, 0.0), "steady_s": steady,
-                           "fits_per_s": k / steady,
-                           "point_iterations_per_s": k * options.point_iterations(sqjax.fitting.bucket(n)) / steady,
-                           "speedup_vs_scipy": (k / steady) / srow["fits_per_s"],
-                           "iou_median": float(np.median(scores)), "gross_failures": float(np.mean(scores < 0.5)),
-                           "converged": float(np.mean(np.asarray(out.converged)))}
+                    row = {
+                        "n": n,
+                        "k": k,
+                        "dtype": dtype,
+                        "mode": mode,
+                        "compile_s": max(first - steady, 0.0),
+                        "steady_s": steady,
+                        "fits_per_s": k / steady,
+                        "point_iterations_per_s": k * options.point_iterations(sqjax.fitting.bucket(n)) / steady,
+                        "speedup_vs_scipy": (k / steady) / srow["fits_per_s"],
+                        "iou_median": float(np.median(scores)),
+                        "gross_failures": float(np.mean(scores < 0.5)),
+                        "converged": float(np.mean(np.asarray(out.converged))),
+                    }
                     results["rows"].append(row)
-                    print(f"sqjax {dtype} {mode:10s} N={n:5d} K={k:4d}: {row['fits_per_s']:9.1f} fits/s "
-                          f"{row['point_iterations_per_s'] / 1e6:7.1f} M pt-it/s  x{row['speedup_vs_scipy']:6.1f} "
-                          f"scipy  compile {row['compile_s']:5.1f}s  IoU median {row['iou_median']:.3f}  "
-                          f"gross {row['gross_failures']:.1%}", flush=True)
+                    print(
+                        f"sqjax {dtype} {mode:10s} N={n:5d} K={k:4d}: {row['fits_per_s']:9.1f} fits/s "
+                        f"{row['point_iterations_per_s'] / 1e6:7.1f} M pt-it/s  x{row['speedup_vs_scipy']:6.1f} "
+                        f"scipy  compile {row['compile_s']:5.1f}s  IoU median {row['iou_median']:.3f}  "
+                        f"gross {row['gross_failures']:.1%}",
+                        flush=True,
+                    )
 
     print()
-    print(f"{'dtype':8s} {'mode':10s} {'N':>5s} {'K':>4s} {'fits/s':>9s} {'M pt-it/s':>9s} {'x scipy':>8s} "
-          f"{'compile s':>9s} {'IoU med':>7s} {'gross':>6s}")
+    print(
+        f"{'dtype':8s} {'mode':10s} {'N':>5s} {'K':>4s} {'fits/s':>9s} {'M pt-it/s':>9s} {'x scipy':>8s} "
+        f"{'compile s':>9s} {'IoU med':>7s} {'gross':>6s}"
+    )
     for r in results["rows"]:
-        print(f"{r['dtype']:8s} {r['mode']:10s} {r['n']:5d} {r['k']:4d} {r['fits_per_s']:9.1f} "
-              f"{r['point_iterations_per_s'] / 1e6:9.1f} {r['speedup_vs_scipy']:8.1f} {r['compile_s']:9.1f} "
-              f"{r['iou_median']:7.3f} {r['gross_failures']:6.1%}")
+        print(
+            f"{r['dtype']:8s} {r['mode']:10s} {r['n']:5d} {r['k']:4d} {r['fits_per_s']:9.1f} "
+            f"{r['point_iterations_per_s'] / 1e6:9.1f} {r['speedup_vs_scipy']:8.1f} {r['compile_s']:9.1f} "
+            f"{r['iou_median']:7.3f} {r['gross_failures']:6.1%}"
+        )
     for s in results["scipy"]:
-        print(f"{'scipy':8s} {'lm single':10s} {s['n']:5d} {s['problems']:4d} {s['fits_per_s']:9.1f} {'':>9s} "
-              f"{1.0:8.1f} {'':>9s} {s['iou_median']:7.3f} {s['gross_failures']:6.1%}")
+        print(
+            f"{'scipy':8s} {'lm single':10s} {s['n']:5d} {s['problems']:4d} {s['fits_per_s']:9.1f} {'':>9s} "
+            f"{1.0:8.1f} {'':>9s} {s['iou_median']:7.3f} {s['gross_failures']:6.1%}"
+        )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1))
     print(f"wrote {args.out}")

@@ -37,15 +37,20 @@ def _rotations(rng, n):
     q = rng.standard_normal((n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w, x, y, z = q.T
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-                     np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-                     np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def cases(rng, n: int, deform: bool = True) -> dict:
     """n random cases as float32 numpy arrays: point (n, 3), size, epsilon, rotation, translation, taper, bend."""
     size = 10.0 ** rng.uniform(-6, 6, (n, 3))
-    if n > 4:   # some isotropic cases
+    if n > 4:  # some isotropic cases
         size[: n // 4] = size[: n // 4, :1]
     eps = rng.uniform(0.1, 1.9, (n, 2))
     R = _rotations(rng, n)
@@ -53,27 +58,35 @@ def cases(rng, n: int, deform: bool = True) -> dict:
     mag = 10.0 ** rng.uniform(-20, 18, (n, 1))
     d = rng.standard_normal((n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    x = d * mag                                                   # anywhere
+    x = d * mag  # anywhere
     axis = np.eye(3)[rng.integers(0, 3, n)] * mag * np.sign(rng.standard_normal((n, 1)))
-    x = np.where((kind == 1)[:, None], axis, x)                   # on an axis (model frame ~ world here)
+    x = np.where((kind == 1)[:, None], axis, x)  # on an axis (model frame ~ world here)
     near = d * size.max(1, keepdims=True) * 10.0 ** rng.uniform(-12, -6, (n, 1))
-    x = np.where((kind == 2)[:, None], near, x)                   # very near the centre
-    x = np.where((kind == 3)[:, None], 0.0, x)                    # exactly at the centre
+    x = np.where((kind == 2)[:, None], near, x)  # very near the centre
+    x = np.where((kind == 3)[:, None], 0.0, x)  # exactly at the centre
     surf = d * size * rng.uniform(0.9, 1.1, (n, 1))
-    x = np.where((kind == 4)[:, None], surf, x)                   # near the surface
+    x = np.where((kind == 4)[:, None], surf, x)  # near the surface
     t = np.zeros((n, 3))
-    R = np.where((kind == 1)[:, None, None], np.eye(3), R)        # axis points really on the model axes
+    R = np.where((kind == 1)[:, None, None], np.eye(3), R)  # axis points really on the model axes
     deformed = (rng.random(n) < 0.5) if deform else np.zeros(n, bool)
     taper = np.where(deformed[:, None], rng.uniform(-1, 1, (n, 2)), 0.0)
-    bend = np.stack([np.where(deformed, 10.0 ** rng.uniform(-8, 0, n) / size.max(1), 0.0),
-                     rng.uniform(-np.pi, np.pi, n)], -1)
+    bend = np.stack(
+        [np.where(deformed, 10.0 ** rng.uniform(-8, 0, n) / size.max(1), 0.0), rng.uniform(-np.pi, np.pi, n)], -1
+    )
     # deformations are defined near the model: deformed cases stay within 1e3 of the largest size
     lim = 1e3 * size.max(1, keepdims=True)
     norm = np.linalg.norm(x, axis=1, keepdims=True)
     x = np.where(deformed[:, None] & (norm > lim), x * (lim / np.maximum(norm, lim)), x)
     f32 = lambda v: np.asarray(v, np.float32)
-    return {"point": f32(x + t), "size": f32(size), "epsilon": f32(eps), "rotation": f32(R),
-            "translation": f32(t), "taper": f32(taper), "bend": f32(bend)}
+    return {
+        "point": f32(x + t),
+        "size": f32(size),
+        "epsilon": f32(eps),
+        "rotation": f32(R),
+        "translation": f32(t),
+        "taper": f32(taper),
+        "bend": f32(bend),
+    }
 
 
 def _scalar(name):
@@ -91,6 +104,7 @@ def _scalar(name):
             return sqm.radial_distance(sq, point)
         x = sqm.to_model_frame(sq, point)
         return sqm.log_inside_outside_local(x, jnp.log(size), epsilon)
+
     return f
 
 
@@ -99,9 +113,11 @@ def checker(name):
     vg = jax.value_and_grad(_scalar(name), argnums=(0, 1, 2))
 
     def one(c):
-        v, (gp, gs, ge) = vg(c["point"], c["size"], c["epsilon"], c["rotation"], c["translation"], c["taper"],
-                             c["bend"])
+        v, (gp, gs, ge) = vg(
+            c["point"], c["size"], c["epsilon"], c["rotation"], c["translation"], c["taper"], c["bend"]
+        )
         return jnp.isfinite(v) & jnp.all(jnp.isfinite(gp)) & jnp.all(jnp.isfinite(gs)) & jnp.all(jnp.isfinite(ge))
+
     return jax.jit(jax.vmap(one))
 
 
@@ -130,8 +146,10 @@ def main():
     t0 = time.perf_counter()
     res = run(args.cases, args.seed, deform=not args.no_deform)
     for name, (bad, first) in res.items():
-        print(f"{name:20s} {bad:7d} / {args.cases} cases with a non-finite value or gradient"
-              + (f"   first: {first}" if first else ""))
+        print(
+            f"{name:20s} {bad:7d} / {args.cases} cases with a non-finite value or gradient"
+            + (f"   first: {first}" if first else "")
+        )
     print(f"({time.perf_counter() - t0:.0f} s, jax {jax.__version__}, float32)")
 
 

@@ -46,13 +46,18 @@ from sqjax.scenes import OBJECTS, default_camera, multipart_scene, render
 
 DATA = Path(os.environ.get("SQJAX_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 MIN_VISIBLE = 30
-MESHES = ("pyvista_examples/ant.ply", "pyvista_examples/airplane.ply", "trimesh_models/teapot.stl",
-          "trimesh_models/box.STL", "trimesh_models/multibody.stl")
+MESHES = (
+    "pyvista_examples/ant.ply",
+    "pyvista_examples/airplane.ply",
+    "trimesh_models/teapot.stl",
+    "trimesh_models/box.STL",
+    "trimesh_models/multibody.stl",
+)
 KEYS = ("correct", "over", "under", "missed", "noise")
 
 
 def peak_rss_gib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20   # ru_maxrss is KiB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux
 
 
 def visible_truth(labels):
@@ -78,7 +83,7 @@ def score(truth, found, ignore, table=None):
     return out
 
 
-OPTIONS: dict = {}   # -o KEY=VALUE: SegmentOptions for an ablation (the defaults otherwise)
+OPTIONS: dict = {}  # -o KEY=VALUE: SegmentOptions for an ablation (the defaults otherwise)
 
 
 def run_scene(image, truth, *, table=None, truth_sq=None, figure=None, found=None):
@@ -86,13 +91,18 @@ def run_scene(image, truth, *, table=None, truth_sq=None, figure=None, found=Non
     seg = sqjax.segment(image, **OPTIONS)
     if found is not None:
         found.append(seg.labels)
-    row = {"found_parts": len(seg.parts), **score(truth, seg.labels, ignore, table),
-           "seconds": seg.timings["total"], "compile_seconds": seg.timings["compile"],
-           "run_seconds": seg.timings["run"]}
+    row = {
+        "found_parts": len(seg.parts),
+        **score(truth, seg.labels, ignore, table),
+        "seconds": seg.timings["total"],
+        "compile_seconds": seg.timings["compile"],
+        "run_seconds": seg.timings["run"],
+    }
     if truth_sq is not None:
         s = hoover(truth, seg.labels, tolerance=0.8, ignore=ignore)
-        row["iou"] = [float(sqjax.volume_iou(truth_sq[m - 1], seg.parts[n - 1].superquadric, n=4000))
-                      for m, n in s.correct_pairs]
+        row["iou"] = [
+            float(sqjax.volume_iou(truth_sq[m - 1], seg.parts[n - 1].superquadric, n=4000)) for m, n in s.correct_pairs
+        ]
     if figure is not None:
         Path(figure).parent.mkdir(parents=True, exist_ok=True)
         sqjax.figure_sequence(image, seg, figure, title=Path(figure).stem, dpi=60)
@@ -104,13 +114,21 @@ def summarise(rows):
     f = sum(r["found_parts"] for r in rows)
     s = {k: sum(r[k] for r in rows) for k in KEYS}
     warm = [r["run_seconds"] for r in rows[1:]] or [rows[0]["run_seconds"]]
-    out = {"scenes": len(rows), "truth_parts": n, "found_parts": f, **s,
-           "correct_rate": s["correct"] / max(n, 1), "over_rate": s["over"] / max(n, 1),
-           "under_rate": s["under"] / max(f, 1), "missed_rate": s["missed"] / max(n, 1),
-           "noise_rate": s["noise"] / max(f, 1),
-           "correct_rate_t05": sum(r["correct_t05"] for r in rows) / max(n, 1),
-           "run_seconds_median": float(np.median(warm)), "run_seconds_max": float(np.max(warm)),
-           "first_scene_compile_seconds": rows[0]["compile_seconds"]}
+    out = {
+        "scenes": len(rows),
+        "truth_parts": n,
+        "found_parts": f,
+        **s,
+        "correct_rate": s["correct"] / max(n, 1),
+        "over_rate": s["over"] / max(n, 1),
+        "under_rate": s["under"] / max(f, 1),
+        "missed_rate": s["missed"] / max(n, 1),
+        "noise_rate": s["noise"] / max(f, 1),
+        "correct_rate_t05": sum(r["correct_t05"] for r in rows) / max(n, 1),
+        "run_seconds_median": float(np.median(warm)),
+        "run_seconds_max": float(np.max(warm)),
+        "first_scene_compile_seconds": rows[0]["compile_seconds"],
+    }
     if "table_correct" in rows[0]:
         out["table_rate"] = float(np.mean([r["table_correct"] for r in rows]))
         objects = n - len(rows)
@@ -181,11 +199,20 @@ def main(argv=None):
     ap.add_argument("--out", default="benchmarks/out/segment.json")
     ap.add_argument("--figures", default=None, help="folder for figures of the worst scenes of each suite")
     ap.add_argument("--worst", type=int, default=2, help="figures per suite with --figures")
-    ap.add_argument("--labels", default=None,
-                    help="folder for the found label images, one SUITE.npz per suite keyed by scene (to compare "
-                         "two versions of the code scene by scene)")
-    ap.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
-                    help="a SegmentOptions field for an ablation (value parsed as a Python literal)")
+    ap.add_argument(
+        "--labels",
+        default=None,
+        help="folder for the found label images, one SUITE.npz per suite keyed by scene (to compare "
+        "two versions of the code scene by scene)",
+    )
+    ap.add_argument(
+        "-o",
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a SegmentOptions field for an ablation (value parsed as a Python literal)",
+    )
     args = ap.parse_args(argv)
     import ast
 
@@ -196,18 +223,28 @@ def main(argv=None):
     suites = args.suites.split(",")
     n_syn, n_mp = (6, 7) if args.quick else (args.scenes, args.multipart)
 
-    results = {"machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
-                           "jax": __import__("jax").__version__},
-               "command": "python benchmarks/segment.py" + (" " + " ".join(argv or sys.argv[1:])).rstrip(),
-               "date": time.strftime("%Y-%m-%d"), "options": results_options}
-    scenes = {}   # suite -> [(name, thunk returning (image, run_scene kwargs))]
+    results = {
+        "machine": {
+            "cpu": cpu_name(),
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            "jax": __import__("jax").__version__,
+        },
+        "command": "python benchmarks/segment.py" + (" " + " ".join(argv or sys.argv[1:])).rstrip(),
+        "date": time.strftime("%Y-%m-%d"),
+        "options": results_options,
+    }
+    scenes = {}  # suite -> [(name, thunk returning (image, run_scene kwargs))]
     if "synthetic" in suites:
-        scenes["synthetic"] = [(f"random:{s}", lambda s=s: (sqjax.random_scene(s, n_parts=(2, 6))[0], {}))
-                               for s in range(n_syn)]
+        scenes["synthetic"] = [
+            (f"random:{s}", lambda s=s: (sqjax.random_scene(s, n_parts=(2, 6))[0], {})) for s in range(n_syn)
+        ]
     if "multipart" in suites:
+
         def mp(s):
             image, parts = multipart_scene(s, OBJECTS[s % len(OBJECTS)])
             return image, {"truth_sq": parts}
+
         scenes["multipart"] = [(f"{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: mp(s)) for s in range(n_mp)]
     if "mosd" in suites:
         files = sorted((DATA / "mosd").glob("*/*.pcd"))
@@ -215,16 +252,21 @@ def main(argv=None):
             files = files[:: max(1, len(files) // 6)]
         if not files:
             print(f"mOSD not found under {DATA / 'mosd'}: skipped (set SQJAX_DATA)", file=sys.stderr)
+
         def mosd(f):
             image = sqjax.read_range_image(f).subsample(args.mosd_step)
             return image, {"table": 1}
+
         scenes["mosd"] = [(f.stem, lambda f=f: mosd(f)) for f in files]
     if "meshes" in suites:
         found = [DATA / m for m in MESHES if (DATA / m).exists()]
         if not found:
             print(f"meshes not found under {DATA}: skipped (set SQJAX_DATA)", file=sys.stderr)
-        scenes["meshes"] = [(f"{p.stem}:{v}", lambda p=p, v=v: (mesh_scene(p, v), {}))
-                            for p in found for v in range(1 if args.quick else 3)]
+        scenes["meshes"] = [
+            (f"{p.stem}:{v}", lambda p=p, v=v: (mesh_scene(p, v), {}))
+            for p in found
+            for v in range(1 if args.quick else 3)
+        ]
 
     categories = mosd_categories()
     for suite, items in scenes.items():
@@ -245,15 +287,17 @@ def main(argv=None):
         results[suite] = {"rows": rows, "summary": summarise(rows)}
         if suite == "mosd":
             results[suite]["step"] = args.mosd_step
-            results[suite]["categories"] = {c: summarise([r for r in rows if r["category"] == c])
-                                            for c in sorted({r["category"] for r in rows})}
+            results[suite]["categories"] = {
+                c: summarise([r for r in rows if r["category"] == c]) for c in sorted({r["category"] for r in rows})
+            }
         if args.figures:
             worst = sorted(rows, key=lambda r: (r["correct"] - r["truth_parts"], r["scene"]))[: args.worst]
             for r in worst:
                 image, kw = dict(items)[r["scene"]]()
                 kw.pop("truth_sq", None), kw.pop("table", None)
-                run_scene(image, image.labels,
-                          figure=Path(args.figures) / f"{suite}_{r['scene'].replace(':', '_')}.png")
+                run_scene(
+                    image, image.labels, figure=Path(args.figures) / f"{suite}_{r['scene'].replace(':', '_')}.png"
+                )
     results["peak_rss_gib"] = peak_rss_gib()
     print_table(results)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
@@ -263,17 +307,23 @@ def main(argv=None):
 
 def print_table(results):
     print()
-    print(f"{'suite':22s} {'scenes':>6s} {'parts':>6s} {'correct':>8s} {'over':>6s} {'under':>6s} {'missed':>7s} "
-          f"{'noise':>6s} {'T=0.5':>6s} {'objects':>8s} {'table':>6s} {'IoU':>5s} "
-          f"{'run s (med/max)':>16s} {'compile s':>9s}")
+    print(
+        f"{'suite':22s} {'scenes':>6s} {'parts':>6s} {'correct':>8s} {'over':>6s} {'under':>6s} {'missed':>7s} "
+        f"{'noise':>6s} {'T=0.5':>6s} {'objects':>8s} {'table':>6s} {'IoU':>5s} "
+        f"{'run s (med/max)':>16s} {'compile s':>9s}"
+    )
+
     def line(name, s):
         obj = f"{s['object_rate']:8.1%}" if "object_rate" in s else f"{'':8s}"
         tab = f"{s['table_rate']:6.0%}" if "table_rate" in s else f"{'':6s}"
         iou = f"{s['iou_median']:5.2f}" if "iou_median" in s else f"{'':5s}"
-        print(f"{name:22s} {s['scenes']:6d} {s['truth_parts']:6d} {s['correct_rate']:8.1%} {s['over_rate']:6.1%} "
-              f"{s['under_rate']:6.1%} {s['missed_rate']:7.1%} {s['noise_rate']:6.1%} {s['correct_rate_t05']:6.1%} "
-              f"{obj} {tab} {iou} {s['run_seconds_median']:7.2f}/{s['run_seconds_max']:<8.2f} "
-              f"{s['first_scene_compile_seconds']:9.1f}")
+        print(
+            f"{name:22s} {s['scenes']:6d} {s['truth_parts']:6d} {s['correct_rate']:8.1%} {s['over_rate']:6.1%} "
+            f"{s['under_rate']:6.1%} {s['missed_rate']:7.1%} {s['noise_rate']:6.1%} {s['correct_rate_t05']:6.1%} "
+            f"{obj} {tab} {iou} {s['run_seconds_median']:7.2f}/{s['run_seconds_max']:<8.2f} "
+            f"{s['first_scene_compile_seconds']:9.1f}"
+        )
+
     for key in ("synthetic", "mosd", "multipart", "meshes"):
         if key in results:
             line(key, results[key]["summary"])
@@ -283,9 +333,12 @@ def print_table(results):
 
 
 def _progress(kind, r):
-    print(f"{kind:9s} {r['scene']:14s} truth {r['truth_parts']} found {r['found_parts']} "
-          f"C/O/U/M/N {r['correct']}/{r['over']}/{r['under']}/{r['missed']}/{r['noise']} "
-          f"run {r['run_seconds']:.2f}s compile {r['compile_seconds']:.1f}s", flush=True)
+    print(
+        f"{kind:9s} {r['scene']:14s} truth {r['truth_parts']} found {r['found_parts']} "
+        f"C/O/U/M/N {r['correct']}/{r['over']}/{r['under']}/{r['missed']}/{r['noise']} "
+        f"run {r['run_seconds']:.2f}s compile {r['compile_seconds']:.1f}s",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ def _run(argv, env, report=None) -> float:
     if r.returncode != 0:
         raise SystemExit(f"sqjax {' '.join(argv)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
     m = re.search(r"in ([0-9.]+) s \(compile ([0-9.]+) s\)", r.stdout)
-    if report is not None and m:   # segment()'s own figures: its run time and the JAX compile events in it
+    if report is not None and m:  # segment()'s own figures: its run time and the JAX compile events in it
         report.update(segment_s=float(m.group(1)), compile_events_s=float(m.group(2)))
     return wall
 
@@ -42,27 +42,43 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "startup.json"))
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="sqjax-startup-") as tmp:
-        env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
-               "SQJAX_CACHE_DIR": str(Path(tmp) / "cache"), "SQJAX_NO_CACHE": ""}
+        env = {
+            **os.environ,
+            "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+            "SQJAX_CACHE_DIR": str(Path(tmp) / "cache"),
+            "SQJAX_NO_CACHE": "",
+        }
         helps = sorted(_run(["--help"], env) for _ in range(args.repeat))
         demo = ["demo", "--out", str(Path(tmp) / "demo"), "--shape", args.shape]
         cold_info, warm_info = {}, {}
         cold = _run(demo, env, cold_info)
         warm = _run(demo, env, warm_info)
         cache_files = sum(1 for _ in (Path(tmp) / "cache").rglob("*") if _.is_file())
-    rows = [(f"sqjax --help (median of {args.repeat:d})", helps[len(helps) // 2], {}),
-            ("sqjax demo, first run (empty cache)", cold, cold_info),
-            ("sqjax demo, second run (warm cache)", warm, warm_info)]
+    rows = [
+        (f"sqjax --help (median of {args.repeat:d})", helps[len(helps) // 2], {}),
+        ("sqjax demo, first run (empty cache)", cold, cold_info),
+        ("sqjax demo, second run (warm cache)", warm, warm_info),
+    ]
     print(f"{'command':<40} {'wall s':>8} {'segment s':>10} {'compile s':>10}")
     for name, v, info in rows:
         extra = f" {info['segment_s']:10.1f} {info['compile_events_s']:10.1f}" if info else ""
         print(f"{name:<40} {v:8.2f}{extra}")
     print("(compile s: JAX's compile events inside segment(): tracing, lowering, XLA or cache retrieval)")
     print(f"load average at the end: {', '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} CPUs")
-    doc = {"help_s": helps, "demo_cold_s": cold, "demo_warm_s": warm, "demo_shape": args.shape,
-           "demo_cold": cold_info, "demo_warm": warm_info, "loadavg": os.getloadavg(),
-           "cache_files": cache_files, "python": platform.python_version(),
-           "machine": platform.machine(), "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    doc = {
+        "help_s": helps,
+        "demo_cold_s": cold,
+        "demo_warm_s": warm,
+        "demo_shape": args.shape,
+        "demo_cold": cold_info,
+        "demo_warm": warm_info,
+        "loadavg": os.getloadavg(),
+        "cache_files": cache_files,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=2) + "\n")

@@ -104,8 +104,9 @@ def _folder() -> Path | None:
     if not folder.is_dir():
         try:
             folder.mkdir(parents=True, exist_ok=True)
-            others = sorted((d for d in _KERNEL_DIR.iterdir() if d.is_dir() and d != folder),
-                            key=lambda d: d.stat().st_mtime)
+            others = sorted(
+                (d for d in _KERNEL_DIR.iterdir() if d.is_dir() and d != folder), key=lambda d: d.stat().st_mtime
+            )
             for old in others[: max(0, len(others) - _KEEP_VERSIONS)]:
                 shutil.rmtree(old, ignore_errors=True)
         except OSError:
@@ -141,13 +142,18 @@ def persistent_kernel(fn):
             return fn(*args)
         dynamic = [i for i, v in enumerate(leaves) if _is_array(v)]
         inputs = [leaves[i] for i in dynamic]
-        x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64   # changes what constants trace to
-        spec = (name, x64, repr(tree),
-                [repr(v) if i not in dynamic else (v.shape, str(v.dtype)) for i, v in enumerate(leaves)])
+        x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64  # changes what constants trace to
+        spec = (
+            name,
+            x64,
+            repr(tree),
+            [repr(v) if i not in dynamic else (v.shape, str(v.dtype)) for i, v in enumerate(leaves)],
+        )
         key = hashlib.sha256(repr(spec).encode()).hexdigest()[:32]
         if key not in _LOADED:
-            _LOADED[key] = _load(folder / f"{key}.jaxexport") or _export(fn, leaves, tree, dynamic, inputs,
-                                                                      folder / f"{key}.jaxexport")
+            _LOADED[key] = _load(folder / f"{key}.jaxexport") or _export(
+                fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport"
+            )
         kernel = _LOADED[key]
         return fn(*args) if kernel is None else kernel(*inputs)
 
@@ -163,7 +169,7 @@ def _load(path: Path):
         return None
     try:
         return jax.jit(jax.export.deserialize(bytearray(blob)).call)
-    except Exception:   # a corrupt or foreign file: export it again
+    except Exception:  # a corrupt or foreign file: export it again
         return None
 
 
@@ -179,9 +185,9 @@ def _export(fn, leaves, tree, dynamic, inputs, path: Path):
     try:
         exported = jax.export.export(jax.jit(flat), platforms=(jax.default_backend(),))(*inputs)
         blob = exported.serialize()
-    except Exception:   # not exportable (a host callback, a missing serializer): trace as usual
+    except Exception:  # not exportable (a host callback, a missing serializer): trace as usual
         return None
-    try:   # atomic: a concurrent process (a Dask worker) reads a whole file or none
+    try:  # atomic: a concurrent process (a Dask worker) reads a whole file or none
         with tempfile.NamedTemporaryFile(dir=path.parent, delete=False, suffix=".tmp") as f:
             f.write(blob)
         os.replace(f.name, path)

@@ -113,6 +113,7 @@ def _positive(kind):
         if not (np.isfinite(v) and v > 0):
             raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
         return v
+
     parse.__name__ = kind.__name__
     return parse
 
@@ -133,8 +134,9 @@ def _depth_scale_arg(text: str) -> float:
     try:
         return check_depth_scale(float(text), "--depth-scale")
     except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e) if "convention" in str(e) else
-                                         f"expected a positive number (depth units per metre), got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            str(e) if "convention" in str(e) else f"expected a positive number (depth units per metre), got {text!r}"
+        ) from None
 
 
 def _shape_arg(text: str) -> tuple[int, int]:
@@ -152,7 +154,7 @@ def _tolerance_arg(text: str) -> float:
         t = float(text)
     except ValueError:
         t = float("nan")
-    if not 0.5 < t <= 1.0:   # Hoover et al.: T in (0.5, 1] keeps the classification one-to-one
+    if not 0.5 < t <= 1.0:  # Hoover et al.: T in (0.5, 1] keeps the classification one-to-one
         raise argparse.ArgumentTypeError(f"tolerance must be in (0.5, 1], got {text!r}")
     return t
 
@@ -226,8 +228,9 @@ def _npy_is_points(path: Path) -> bool:
     return a.ndim == 2 and a.shape[1] == 3
 
 
-def load_input(path, *, camera=None, ortho=None, depth_scale=None, color=None,
-               intrinsics=None) -> tuple[Any, str]:  # (RangeImage or (P, 3) array, its kind)
+def load_input(
+    path, *, camera=None, ortho=None, depth_scale=None, color=None, intrinsics=None
+) -> tuple[Any, str]:  # (RangeImage or (P, 3) array, its kind)
     """Read INPUT as the `segment` command does: `(RangeImage, "range_image")` or `((P, 3), "point_cloud")`.
 
     `camera`: a `PinholeCamera` (overrides a stored one); `ortho`: [pixel_size] or [pixel_size, cx, cy]
@@ -252,8 +255,11 @@ def load_input(path, *, camera=None, ortho=None, depth_scale=None, color=None,
     if path.is_dir():
         raise CLIError(f"{path}: is a directory, expected a file ({_SUPPORTED})")
     has_camera = camera is not None or ortho is not None
-    if ext in _CLOUD_EXTS or (ext == ".pcd" and (_pcd_height(path) or 0) <= 1 and not has_camera) or \
-            (ext == ".npy" and not has_camera and _npy_is_points(path)):
+    if (
+        ext in _CLOUD_EXTS
+        or (ext == ".pcd" and (_pcd_height(path) or 0) <= 1 and not has_camera)
+        or (ext == ".npy" and not has_camera and _npy_is_points(path))
+    ):
         if has_camera:
             raise CLIError(f"{path}: --camera / --ortho apply to range images, and this is a point cloud")
         if color is not None:
@@ -261,16 +267,23 @@ def load_input(path, *, camera=None, ortho=None, depth_scale=None, color=None,
         pts = read_points(path)
         return (pts / depth_scale if depth_scale is not None else pts), "point_cloud"
     if ext in (".npy", ".png") and not has_camera:
-        raise CLIError(f"{path}: a {ext} depth image stores no camera; pass --intrinsics FILE.json, "
-                       "--camera fx,fy,cx,cy or --ortho PIXEL")
+        raise CLIError(
+            f"{path}: a {ext} depth image stores no camera; pass --intrinsics FILE.json, "
+            "--camera fx,fy,cx,cy or --ortho PIXEL"
+        )
     cam = camera
     if ortho is not None:
         cam = OrthographicCamera(ortho[0], *(ortho[1:] if len(ortho) == 3 else (0.0, 0.0)))
     image = read_range_image(path, camera=cam, depth_scale=depth_scale)
     if ortho is not None and len(ortho) == 1:
         H, W = image.shape
-        image = RangeImage(image.depth, OrthographicCamera(ortho[0], (W - 1) / 2, (H - 1) / 2), image.labels,
-                           image.points_override, image.colors)
+        image = RangeImage(
+            image.depth,
+            OrthographicCamera(ortho[0], (W - 1) / 2, (H - 1) / 2),
+            image.labels,
+            image.points_override,
+            image.colors,
+        )
     if color is not None:
         image = with_colors(image, color)
     return image, "range_image"
@@ -310,10 +323,15 @@ class _Progress:
         if self.bar is None and self.enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=self.total, desc=f"sqjax: {what}", file=self.stream, unit="step",
-                            dynamic_ncols=True, leave=False,
-                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
-                                       "[{elapsed}<{remaining}] {postfix}")
+            self.bar = tqdm(
+                total=self.total,
+                desc=f"sqjax: {what}",
+                file=self.stream,
+                unit="step",
+                dynamic_ncols=True,
+                leave=False,
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}",
+            )
 
     def start(self, what: str):
         self._open(what)
@@ -328,12 +346,20 @@ class _Progress:
             self.bar.total = int(total) if total is not None else self.total
             done = min(self.step + self.round, self.bar.total)  # a final stage per finished round
             if done > self.bar.n:
-                self.bar.update(done - self.bar.n)   # update(): tqdm's smoothed rate, so the ETA forgets compiling
+                self.bar.update(done - self.bar.n)  # update(): tqdm's smoothed rate, so the ETA forgets compiling
             else:
                 self.bar.refresh()
 
-    def __call__(self, step: int, n_active: int, n_models: int, *, stage: str | None = None,
-                 round: int | None = None, total: int | None = None):  # noqa: A002
+    def __call__(
+        self,
+        step: int,
+        n_active: int,
+        n_models: int,
+        *,
+        stage: str | None = None,
+        round: int | None = None,
+        total: int | None = None,
+    ):  # noqa: A002
         if round is not None and round != self.round:
             self.round, self.round_start, self.in_final = int(round), self.step, False
         elif stage in (None, "grow") and step > self.step and (self.in_final or n_models > self.n_models):
@@ -346,8 +372,13 @@ class _Progress:
             self.in_final = True
         self._sync(total)
         where = f"round {self.round + 1}/{self.rounds}, " if self.rounds > 1 else ""
-        tail = f"{n_active} of {n_models} models growing" if stage == "grow" else \
-            "merging split parts, final selection" if stage in ("merge", "select") else stage
+        tail = (
+            f"{n_active} of {n_models} models growing"
+            if stage == "grow"
+            else "merging split parts, final selection"
+            if stage in ("merge", "select")
+            else stage
+        )
         self._post(f"{where}growth step {self.step - self.round_start}/{self.budget}, {tail}")
 
     def phase(self, what: str):
@@ -369,15 +400,19 @@ def _fmt(v, w=7, p=3):
 
 
 def _parts_table(seg) -> str:
-    head = f"{'part':>4} {'points':>7} {'a1':>7} {'a2':>7} {'a3':>7} {'e1':>5} {'e2':>5} " \
-           f"{'x':>8} {'y':>8} {'z':>8} {'rms':>9}"
+    head = (
+        f"{'part':>4} {'points':>7} {'a1':>7} {'a2':>7} {'a3':>7} {'e1':>5} {'e2':>5} "
+        f"{'x':>8} {'y':>8} {'z':>8} {'rms':>9}"
+    )
     rows = [head]
     for i, p in enumerate(seg.parts):
         sq = p.superquadric
         a, e, t = (np.asarray(v, float) for v in (sq.size, sq.epsilon, sq.translation))
         rms = np.sqrt(p.error / p.num_explained) if p.num_explained else float("nan")
-        rows.append(f"{i + 1:>4} {p.num_points:>7} {_fmt(a[0])} {_fmt(a[1])} {_fmt(a[2])} {_fmt(e[0], 5, 2)} "
-                    f"{_fmt(e[1], 5, 2)} {_fmt(t[0], 8)} {_fmt(t[1], 8)} {_fmt(t[2], 8)} {rms:9.2e}")
+        rows.append(
+            f"{i + 1:>4} {p.num_points:>7} {_fmt(a[0])} {_fmt(a[1])} {_fmt(a[2])} {_fmt(e[0], 5, 2)} "
+            f"{_fmt(e[1], 5, 2)} {_fmt(t[0], 8)} {_fmt(t[1], 8)} {_fmt(t[2], 8)} {rms:9.2e}"
+        )
     return "\n".join(rows)
 
 
@@ -390,19 +425,22 @@ def _segment_and_write(data, kind, out, *, input_path, input_shape, settings, op
     try:
         try:
             seg = segment(data, options=options, progress=progress)
-        except ValueError as e:   # e.g. too few valid points: say which input
+        except ValueError as e:  # e.g. too few valid points: say which input
             raise CLIError(f"{input_path}: {_one_line(e)}" if input_path else _one_line(e)) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
-        written = write_segmentation(seg, data, out, input_path=input_path, input_shape=input_shape,
-                                     settings=settings, figure=figure)
+        written = write_segmentation(
+            seg, data, out, input_path=input_path, input_shape=input_shape, settings=settings, figure=figure
+        )
     finally:
         progress.close()
     n = int(data.valid.sum()) if kind == "range_image" else len(data)
     t = seg.timings
     if not quiet:
-        print(f"sqjax: {len(seg.parts)} part{'s' if len(seg.parts) != 1 else ''} from {n} "
-              f"{'pixels' if kind == 'range_image' else 'points'} in {t['total']:.1f} s "
-              f"(compile {t['compile']:.1f} s); noise {seg.noise:.3g}, threshold {seg.threshold:.3g}")
+        print(
+            f"sqjax: {len(seg.parts)} part{'s' if len(seg.parts) != 1 else ''} from {n} "
+            f"{'pixels' if kind == 'range_image' else 'points'} in {t['total']:.1f} s "
+            f"(compile {t['compile']:.1f} s); noise {seg.noise:.3g}, threshold {seg.threshold:.3g}"
+        )
         if seg.parts:
             print(_parts_table(seg))
         print(f"wrote {out}{os.sep}: {' '.join(written)}")
@@ -424,34 +462,61 @@ def cmd_segment(args) -> int:
     if wants_many(args):  # several inputs, a folder, a glob or a cluster: sqjax.dataset
         return cli_segment_many(args)
     path = Path(args.input[0])
-    options = _segment_options(args.option, args.noise)          # bad options: before any work
+    options = _segment_options(args.option, args.noise)  # bad options: before any work
     out = Path(args.out) if args.out else Path(f"sqjax-{path.stem}")
-    created = _check_out_dir(out)                                  # unusable --out: before any work
+    created = _check_out_dir(out)  # unusable --out: before any work
     try:
         return _segment_file(args, path, options, out)
     except BaseException:
-        if created:   # leave no empty folder behind a failed run
+        if created:  # leave no empty folder behind a failed run
             with contextlib.suppress(OSError):
                 out.rmdir()
         raise
 
 
 def _segment_file(args, path, options, out) -> int:
-    data, kind = load_input(path, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale,
-                            color=args.color, intrinsics=args.intrinsics)
+    data, kind = load_input(
+        path,
+        camera=args.camera,
+        ortho=args.ortho,
+        depth_scale=args.depth_scale,
+        color=args.color,
+        intrinsics=args.intrinsics,
+    )
     input_shape = data.shape if kind == "range_image" else (len(data),)
-    if kind == "range_image":   # segmented at a working resolution, labelled at the input's
+    if kind == "range_image":  # segmented at a working resolution, labelled at the input's
         options = dataclasses.replace(options, subsample=args.subsample)
     elif args.subsample is not None and args.subsample > 1:
         data = data[:: args.subsample]
-    camera_source = "--intrinsics" if args.intrinsics is not None else "--camera" if args.camera is not None \
-        else "--ortho" if args.ortho is not None else ("file" if kind == "range_image" else None)
-    settings = {"subsample": 1 if kind == "range_image" else (args.subsample or 1), "depth_scale": args.depth_scale,
-                "depth_scale_convention": "stored units per metre (divides)", "noise": args.noise,
-                "camera_source": camera_source,
-                "color": None if args.color is None else str(args.color), "options": dataclasses.asdict(options)}
-    _segment_and_write(data, kind, out, input_path=path, input_shape=input_shape, settings=settings,
-                       options=options, figure=not args.no_figure, quiet=args.quiet)
+    camera_source = (
+        "--intrinsics"
+        if args.intrinsics is not None
+        else "--camera"
+        if args.camera is not None
+        else "--ortho"
+        if args.ortho is not None
+        else ("file" if kind == "range_image" else None)
+    )
+    settings = {
+        "subsample": 1 if kind == "range_image" else (args.subsample or 1),
+        "depth_scale": args.depth_scale,
+        "depth_scale_convention": "stored units per metre (divides)",
+        "noise": args.noise,
+        "camera_source": camera_source,
+        "color": None if args.color is None else str(args.color),
+        "options": dataclasses.asdict(options),
+    }
+    _segment_and_write(
+        data,
+        kind,
+        out,
+        input_path=path,
+        input_shape=input_shape,
+        settings=settings,
+        options=options,
+        figure=not args.no_figure,
+        quiet=args.quiet,
+    )
     return 0
 
 
@@ -465,18 +530,37 @@ def cmd_demo(args) -> int:
     image, truth = paper_scene("occluded_block", shape=args.shape, noise=args.noise, seed=0)
     scene = out / "scene.npz"
     write_range_image(scene, image)
-    print(f"sqjax demo: the paper's Fig. 3 scene (a block behind a cylinder, and a sphere), "
-          f"{image.shape[0]}x{image.shape[1]} pixels, {len(truth)} true parts -> {scene}")
+    print(
+        f"sqjax demo: the paper's Fig. 3 scene (a block behind a cylinder, and a sphere), "
+        f"{image.shape[0]}x{image.shape[1]} pixels, {len(truth)} true parts -> {scene}"
+    )
     data, _ = load_input(scene)
-    settings = {"subsample": 1, "depth_scale": None, "noise": None, "camera_source": "file",
-                "options": dataclasses.asdict(options), "scene": "occluded_block"}
-    seg, written = _segment_and_write(data, "range_image", out, input_path=scene, input_shape=data.shape,
-                                      settings=settings, options=options, figure=not args.no_figure, quiet=False)
+    settings = {
+        "subsample": 1,
+        "depth_scale": None,
+        "noise": None,
+        "camera_source": "file",
+        "options": dataclasses.asdict(options),
+        "scene": "occluded_block",
+    }
+    seg, written = _segment_and_write(
+        data,
+        "range_image",
+        out,
+        input_path=scene,
+        input_shape=data.shape,
+        settings=settings,
+        options=options,
+        figure=not args.no_figure,
+        quiet=False,
+    )
     from .evaluate import hoover
 
     score = hoover(data.labels, seg.labels)
-    print(f"Hoover scores against the truth (T = 0.8): {score.correct} of {score.n_truth} parts correct, "
-          f"{score.over} over-, {score.under} under-segmented, {score.missed} missed, {score.noise} noise")
+    print(
+        f"Hoover scores against the truth (T = 0.8): {score.correct} of {score.n_truth} parts correct, "
+        f"{score.over} over-, {score.under} under-segmented, {score.missed} missed, {score.noise} noise"
+    )
     fig = written.get("figure.png")
     look = f"open {fig}, or run " if fig is not None and Path(fig).is_file() else "run "
     print(f"next: {look} sqjax evaluate {out} {scene}")
@@ -511,23 +595,30 @@ def cmd_render(args) -> int:
             out.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise OSError(e.errno, f"{out}: cannot create folder {out.parent} ({e.strerror})") from None
-    for target in (out, json_path):   # both writable, or neither is written (before the ray casting)
+    for target in (out, json_path):  # both writable, or neither is written (before the ray casting)
         if target is not None:
             check_writable_file(target)
     image, truth = _scene(args.scene, args.shape, args.noise, args.seed)
     doc = None
     if json_path is not None:
-        doc = {"version": 1, "scene": args.scene, "image_size": list(image.shape), "camera": image.camera.to_dict(),
-               "parts": [{"label": i + 1, **superquadric_dict(sq)} for i, sq in enumerate(truth)]}
+        doc = {
+            "version": 1,
+            "scene": args.scene,
+            "image_size": list(image.shape),
+            "camera": image.camera.to_dict(),
+            "parts": [{"label": i + 1, **superquadric_dict(sq)} for i, sq in enumerate(truth)],
+        }
     with atomic_paths(*(p for p in (json_path,) if p is not None)) as tmps:
         if tmps:
             tmps[0].write_text(dumps(doc) + "\n")
         write_range_image(out, image, depth_scale=args.depth_scale)  # atomic itself; the JSON follows it
     msg = f"wrote {out}: {image.shape[0]}x{image.shape[1]} range image of {args.scene!r}, {len(truth)} parts"
     if out.suffix.lower() == ".png":
-        msg += (f" (16-bit depth x {args.depth_scale:g}; no labels or camera: read with --camera "
-                f"{image.camera.fx:g},{image.camera.fy:g},{image.camera.cx:g},{image.camera.cy:g} "  # pyright: ignore[reportAttributeAccessIssue]  (scenes: pinhole)
-                f"--depth-scale {args.depth_scale:g})")
+        msg += (
+            f" (16-bit depth x {args.depth_scale:g}; no labels or camera: read with --camera "
+            f"{image.camera.fx:g},{image.camera.fy:g},{image.camera.cx:g},{image.camera.cy:g} "  # pyright: ignore[reportAttributeAccessIssue]  (scenes: pinhole)
+            f"--depth-scale {args.depth_scale:g})"
+        )
     print(msg)
     if json_path is not None:
         print(f"wrote {json_path}: true parameters")
@@ -601,25 +692,28 @@ def cmd_evaluate(args) -> int:
     truth = _read_truth_labels(truth_path)
     step = (meta.get("settings") or {}).get("subsample") or 1
     if isinstance(step, bool) or not isinstance(step, int) or step < 1:
-        raise CLIError(f"{labels_path.parent / 'models.json'}: settings.subsample must be an integer >= 1, "
-                       f"got {step!r}")
+        raise CLIError(
+            f"{labels_path.parent / 'models.json'}: settings.subsample must be an integer >= 1, got {step!r}"
+        )
     if truth.shape != found.shape and step > 1:
         truth = truth[::step, ::step] if truth.ndim == 2 else truth[::step]
     if truth.shape != found.shape:
-        raise CLIError(f"label shapes differ: result {found.shape} ({labels_path}) vs truth {truth.shape} "
-                       f"({truth_path})")
+        raise CLIError(
+            f"label shapes differ: result {found.shape} ({labels_path}) vs truth {truth.shape} ({truth_path})"
+        )
     score = hoover(truth, found, tolerance=args.tolerance)
     pct = lambda r: "  -" if not np.isfinite(r) else f"{100 * r:5.1f} %"
-    print(f"Hoover et al. (1996) at tolerance {score.tolerance:g}: {score.n_truth} truth regions, "
-          f"{score.n_found} found regions")
+    print(
+        f"Hoover et al. (1996) at tolerance {score.tolerance:g}: {score.n_truth} truth regions, "
+        f"{score.n_found} found regions"
+    )
     print(f"  correct  {score.correct:4d}  {pct(score.correct_rate)} of truth")
     print(f"  over     {score.over:4d}  {pct(score.over_rate)} of truth")
     print(f"  under    {score.under:4d}  {pct(score.under_rate)} of found")
     print(f"  missed   {score.missed:4d}  {pct(score.missed_rate)} of truth")
     print(f"  noise    {score.noise:4d}  {pct(score.noise_rate)} of found")
     if args.json:
-        doc = {"version": 1, "result": str(labels_path), "truth": str(truth_path), "subsample": step,
-               **score.to_dict()}
+        doc = {"version": 1, "result": str(labels_path), "truth": str(truth_path), "subsample": step, **score.to_dict()}
         print(f"wrote {write_json(doc, args.json)}")
     return 0
 
@@ -639,7 +733,7 @@ def cmd_fit(args) -> int:
         pts = pts / args.depth_scale
     try:
         result = fit(pts, max_steps=args.max_steps, deform=args.deform)
-    except ValueError as e:   # e.g. too few valid points: say which input
+    except ValueError as e:  # e.g. too few valid points: say which input
         raise CLIError(f"{path}: {_one_line(e)}") from None
     doc = fit_dict(result, input_path=path)
     deg = np.degrees(doc["euler_zyz"])
@@ -667,93 +761,166 @@ def cmd_fit(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 
-    p = _Parser(prog="sqjax", description="Direct part-level segmentation of range images with superquadrics "
-                "(recover-and-select; Leonardis, Jaklic, Solina).",
-                epilog="Start with 'sqjax demo'. Each command has --help.")
+    p = _Parser(
+        prog="sqjax",
+        description="Direct part-level segmentation of range images with superquadrics "
+        "(recover-and-select; Leonardis, Jaklic, Solina).",
+        epilog="Start with 'sqjax demo'. Each command has --help.",
+    )
     p.add_argument("--version", action="version", version=f"sqjax {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
     common = _Parser(add_help=False)  # a parent of the sub-parsers, so of their class
-    common.add_argument("--no-cache", action="store_true",
-                        help="do not use the on-disk compilation cache (also: SQJAX_NO_CACHE=1); "
-                        "default folder $XDG_CACHE_HOME/sqjax/jax or ~/.cache/sqjax/jax ($SQJAX_CACHE_DIR)")
+    common.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not use the on-disk compilation cache (also: SQJAX_NO_CACHE=1); "
+        "default folder $XDG_CACHE_HOME/sqjax/jax or ~/.cache/sqjax/jax ($SQJAX_CACHE_DIR)",
+    )
 
-    s = sub.add_parser("segment", parents=[common], help="segment a range image or point cloud into superquadric parts",
-                       description="Segment INPUT into superquadric parts (recover-and-select) and write "
-                       "models.json, labels.npy, labels.png, labels_id.png (clouds: labels.ply), parts.glb (Y-up), "
-                       "parts.ply and figure.png into DIR. Inputs: " + _SUPPORTED + ".")
-    s.add_argument("input", metavar="INPUT", nargs="+", help="range image or point cloud file; several files, a "
-                   "folder or a glob: one output folder each under DIR, summary.csv / summary.json (sqjax.dataset)")
+    s = sub.add_parser(
+        "segment",
+        parents=[common],
+        help="segment a range image or point cloud into superquadric parts",
+        description="Segment INPUT into superquadric parts (recover-and-select) and write "
+        "models.json, labels.npy, labels.png, labels_id.png (clouds: labels.ply), parts.glb (Y-up), "
+        "parts.ply and figure.png into DIR. Inputs: " + _SUPPORTED + ".",
+    )
+    s.add_argument(
+        "input",
+        metavar="INPUT",
+        nargs="+",
+        help="range image or point cloud file; several files, a "
+        "folder or a glob: one output folder each under DIR, summary.csv / summary.json (sqjax.dataset)",
+    )
     s.add_argument("--workers", type=_positive(int), metavar="N", help="several inputs: a local Dask cluster of N")
     s.add_argument("--scheduler", metavar="ADDRESS", help="several inputs: run on this Dask scheduler")
     cam = s.add_mutually_exclusive_group()
-    cam.add_argument("--camera", type=_camera_arg, metavar="fx,fy,cx,cy",
-                     help="pinhole intrinsics in pixels (needed for .npy/.png depth; overrides a stored camera)")
-    cam.add_argument("--ortho", type=_ortho_arg, metavar="PIXEL[,cx,cy]",
-                     help="orthographic camera: pixel size in depth units (principal point: the image centre)")
-    cam.add_argument("--intrinsics", metavar="FILE.json",
-                     help="pinhole intrinsics JSON: fx, fy, cx, cy (or x_offset, y_offset) or Open3D's "
-                     "intrinsic_matrix")
+    cam.add_argument(
+        "--camera",
+        type=_camera_arg,
+        metavar="fx,fy,cx,cy",
+        help="pinhole intrinsics in pixels (needed for .npy/.png depth; overrides a stored camera)",
+    )
+    cam.add_argument(
+        "--ortho",
+        type=_ortho_arg,
+        metavar="PIXEL[,cx,cy]",
+        help="orthographic camera: pixel size in depth units (principal point: the image centre)",
+    )
+    cam.add_argument(
+        "--intrinsics",
+        metavar="FILE.json",
+        help="pinhole intrinsics JSON: fx, fy, cx, cy (or x_offset, y_offset) or Open3D's intrinsic_matrix",
+    )
     s.add_argument("--color", metavar="IMAGE", help="colour image registered to the depth (RGB-D); used in figure.png")
-    s.add_argument("--depth-scale", type=_depth_scale_arg, metavar="S",
-                   help="stored depth units per metre, divides (Open3D's convention): 1000 for millimetres; "
-                   "default: use the stored values")
-    s.add_argument("--subsample", type=_positive(int), default=None, metavar="STEP",
-                   help="range images: segment at every STEP-th row and column and label every input pixel "
-                   "with the final models (default: the step that brings the image near 160 x 120; 1 = the "
-                   "slow exact path); clouds: use every STEP-th point (default 1)")
-    s.add_argument("--noise", type=_positive(float), metavar="SIGMA",
-                   help="sensor noise std in depth units (default: estimated from the data)")
-    s.add_argument("-o", "--option", action="append", metavar="KEY=VALUE",
-                   help="any SegmentOptions field, e.g. -o window=8 -o max_steps=40 (repeatable)")
+    s.add_argument(
+        "--depth-scale",
+        type=_depth_scale_arg,
+        metavar="S",
+        help="stored depth units per metre, divides (Open3D's convention): 1000 for millimetres; "
+        "default: use the stored values",
+    )
+    s.add_argument(
+        "--subsample",
+        type=_positive(int),
+        default=None,
+        metavar="STEP",
+        help="range images: segment at every STEP-th row and column and label every input pixel "
+        "with the final models (default: the step that brings the image near 160 x 120; 1 = the "
+        "slow exact path); clouds: use every STEP-th point (default 1)",
+    )
+    s.add_argument(
+        "--noise",
+        type=_positive(float),
+        metavar="SIGMA",
+        help="sensor noise std in depth units (default: estimated from the data)",
+    )
+    s.add_argument(
+        "-o",
+        "--option",
+        action="append",
+        metavar="KEY=VALUE",
+        help="any SegmentOptions field, e.g. -o window=8 -o max_steps=40 (repeatable)",
+    )
     s.add_argument("--out", metavar="DIR", help="output folder (default: ./sqjax-<input name>)")
     s.add_argument("--no-figure", action="store_true", help="do not draw figure.png (faster)")
     s.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     s.set_defaults(func=cmd_segment)
 
-    d = sub.add_parser("demo", parents=[common], help="segment a generated scene of the paper (no download)",
-                       description="Render the paper's Fig. 3 scene (a block seen in two pieces behind a "
-                       "cylinder, and a sphere), segment it and write the results and the figure to DIR.")
+    d = sub.add_parser(
+        "demo",
+        parents=[common],
+        help="segment a generated scene of the paper (no download)",
+        description="Render the paper's Fig. 3 scene (a block seen in two pieces behind a "
+        "cylinder, and a sphere), segment it and write the results and the figure to DIR.",
+    )
     d.add_argument("--out", default="sqjax-demo", metavar="DIR", help="output folder (default: ./sqjax-demo)")
     d.add_argument("--shape", type=_shape_arg, default=(120, 160), metavar="H,W", help="image size (default 120,160)")
     d.add_argument("--noise", type=_noise_arg, default=0.002, metavar="SIGMA", help="depth noise std (default 0.002)")
     d.add_argument("--no-figure", action="store_true", help="do not draw figure.png")
     d.set_defaults(func=cmd_demo)
 
-    r = sub.add_parser("render", parents=[common], help="write a labelled synthetic range image",
-                       description="Ray cast a synthetic scene: SCENE is one of the paper's scenes "
-                       "(sphere_cylinder, two_cylinders, occluded_block) or random:SEED. Writes depth, labels "
-                       "and camera (.npz, .pcd) or 16-bit depth only (.png).")
+    r = sub.add_parser(
+        "render",
+        parents=[common],
+        help="write a labelled synthetic range image",
+        description="Ray cast a synthetic scene: SCENE is one of the paper's scenes "
+        "(sphere_cylinder, two_cylinders, occluded_block) or random:SEED. Writes depth, labels "
+        "and camera (.npz, .pcd) or 16-bit depth only (.png).",
+    )
     r.add_argument("scene", metavar="SCENE", help="sphere_cylinder | two_cylinders | occluded_block | random:SEED")
     r.add_argument("--out", required=True, metavar="FILE", help="output .npz, .pcd or .png")
     r.add_argument("--shape", type=_shape_arg, default=(120, 160), metavar="H,W", help="image size (default 120,160)")
-    r.add_argument("--noise", type=_noise_arg, default=None, metavar="SIGMA",
-                   help="depth noise std (default: 0 for paper scenes, 0.005 for random ones)")
+    r.add_argument(
+        "--noise",
+        type=_noise_arg,
+        default=None,
+        metavar="SIGMA",
+        help="depth noise std (default: 0 for paper scenes, 0.005 for random ones)",
+    )
     r.add_argument("--seed", type=int, default=0, help="noise seed of paper scenes (default 0)")
-    r.add_argument("--depth-scale", type=_depth_scale_arg, default=1000.0, metavar="S",
-                   help=".png only: stored value = depth x S, S = stored units per metre (default 1000: mm)")
+    r.add_argument(
+        "--depth-scale",
+        type=_depth_scale_arg,
+        default=1000.0,
+        metavar="S",
+        help=".png only: stored value = depth x S, S = stored units per metre (default 1000: mm)",
+    )
     r.add_argument("--json", metavar="OUT", help="also write the true superquadrics as JSON")
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("evaluate", parents=[common], help="Hoover scores of a segmentation against ground-truth labels",
-                       description="Compare found labels (a 'sqjax segment' output folder or its labels.npy) "
-                       "with ground truth (.npz or .pcd with labels, or a .npy label array) by the region "
-                       "classification of Hoover et al. (1996). A --subsample recorded in models.json is "
-                       "applied to the truth.")
+    e = sub.add_parser(
+        "evaluate",
+        parents=[common],
+        help="Hoover scores of a segmentation against ground-truth labels",
+        description="Compare found labels (a 'sqjax segment' output folder or its labels.npy) "
+        "with ground truth (.npz or .pcd with labels, or a .npy label array) by the region "
+        "classification of Hoover et al. (1996). A --subsample recorded in models.json is "
+        "applied to the truth.",
+    )
     e.add_argument("result", metavar="RESULT", help="output folder of 'sqjax segment', or a labels .npy")
     e.add_argument("truth", metavar="TRUTH", help=".npz / .pcd with labels, or a .npy label array")
     e.add_argument("--tolerance", type=_tolerance_arg, default=0.8, metavar="T", help="overlap tolerance (default 0.8)")
     e.add_argument("--json", metavar="OUT", help="write the scores as JSON")
     e.set_defaults(func=cmd_evaluate)
 
-    f = sub.add_parser("fit", parents=[common], help="fit one superquadric to a point set",
-                       description="Recover one superquadric from POINTS (.ply, .npy, .xyz, .txt, .pcd, .obj, "
-                       ".stl) and print its parameters; --json writes them (schema: 'python -m pydoc sqjax.cli').")
+    f = sub.add_parser(
+        "fit",
+        parents=[common],
+        help="fit one superquadric to a point set",
+        description="Recover one superquadric from POINTS (.ply, .npy, .xyz, .txt, .pcd, .obj, "
+        ".stl) and print its parameters; --json writes them (schema: 'python -m pydoc sqjax.cli').",
+    )
     f.add_argument("points", metavar="POINTS", help="point set file")
     f.add_argument("--json", metavar="OUT", help="write the parameters as JSON")
     f.add_argument("--deform", action="store_true", help="also fit tapering and bending")
     f.add_argument("--max-steps", type=_positive(int), default=20, metavar="N", help="LM steps (default 20)")
-    f.add_argument("--depth-scale", type=_depth_scale_arg, metavar="S",
-                   help="stored units per metre: coordinates are divided by S (1000 for millimetres)")
+    f.add_argument(
+        "--depth-scale",
+        type=_depth_scale_arg,
+        metavar="S",
+        help="stored units per metre: coordinates are divided by S (1000 for millimetres)",
+    )
     f.set_defaults(func=cmd_fit)
     return p
 
@@ -761,7 +928,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _one_line(e: BaseException) -> str:
     msg = str(e) or type(e).__name__
     if isinstance(e, OSError) and e.strerror and e.errno is not None:
-        msg = e.strerror    # without the "[Errno N]" prefix; our own messages carry the path in strerror
+        msg = e.strerror  # without the "[Errno N]" prefix; our own messages carry the path in strerror
     if isinstance(e, OSError) and e.filename and str(e.filename) not in msg:
         msg = f"{e.filename}: {msg}"
     return " ".join(msg.split())
@@ -798,8 +965,10 @@ def main(argv=None) -> int:
     except Exception as e:  # a bug: still one line, the traceback on request
         if os.environ.get("SQJAX_DEBUG"):
             raise
-        print(f"sqjax: internal error: {type(e).__name__}: {_one_line(e)} (set SQJAX_DEBUG=1 for the traceback)",
-              file=sys.stderr)
+        print(
+            f"sqjax: internal error: {type(e).__name__}: {_one_line(e)} (set SQJAX_DEBUG=1 for the traceback)",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
 
 

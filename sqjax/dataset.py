@@ -53,8 +53,24 @@ if TYPE_CHECKING:
     from .segment import SegmentOptions
 
 MARKER = "done.json"
-COLUMNS = ("name", "input", "status", "parts", "points", "seconds", "compile_seconds", "run_seconds",
-           "wall_seconds", "truth_parts", "correct", "over", "under", "missed", "noise", "error")
+COLUMNS = (
+    "name",
+    "input",
+    "status",
+    "parts",
+    "points",
+    "seconds",
+    "compile_seconds",
+    "run_seconds",
+    "wall_seconds",
+    "truth_parts",
+    "correct",
+    "over",
+    "under",
+    "missed",
+    "noise",
+    "error",
+)
 INPUT_EXTS = (".npz", ".npy", ".png", ".pcd", ".ply", ".xyz", ".txt", ".obj", ".stl")
 """Extensions `expand_inputs` picks from a folder (those `sqjax segment` reads)."""
 
@@ -86,9 +102,9 @@ class _Config:
     """What every scene shares (sent once per task to Dask workers: keep it small and picklable)."""
 
     options: SegmentOptions
-    read: Callable | None             # path -> (data, kind); None = `read_input`
+    read: Callable | None  # path -> (data, kind); None = `read_input`
     subsample: int
-    truth: Callable | None            # raw labels (H, W) -> truth labels; None = as stored
+    truth: Callable | None  # raw labels (H, W) -> truth labels; None = as stored
     out: Path | None
     figure: bool
     settings: dict
@@ -134,8 +150,10 @@ def read_input(path):
 def _names(items) -> list[str]:
     """Output folder names: the file stem ("scene003" for arrays), made unique by the parent folder,
     then a counter."""
-    stems = [Path(os.fspath(it)).stem if _is_path(it) else (it[0] if isinstance(it, tuple) else f"scene{i:03d}")
-             for i, it in enumerate(items)]
+    stems = [
+        Path(os.fspath(it)).stem if _is_path(it) else (it[0] if isinstance(it, tuple) else f"scene{i:03d}")
+        for i, it in enumerate(items)
+    ]
     dup = {s for s in stems if stems.count(s) > 1}
     names, used = [], set()
     for it, s in zip(items, stems):
@@ -198,7 +216,7 @@ def _configure_jax(cache_dir: str | None) -> None:
         import jax
 
         jax.config.update("jax_compilation_cache_dir", str(cache_dir))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)   # the many small kernels too
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # the many small kernels too
         _CONFIGURED[cache_dir] = True
 
 
@@ -226,20 +244,40 @@ def run_scene(item, name: str, cfg: _Config, fingerprint: str | None = None) -> 
             data = data.subsample(cfg.subsample) if kind == "range_image" else data[:: cfg.subsample]
         seg = segment(data, options=cfg.options)
         t = seg.timings
-        row = _row(name, item, status="done", parts=len(seg.parts),
-                   points=int(data.valid.sum()) if kind == "range_image" else int(np.isfinite(data).all(1).sum()),
-                   seconds=t["total"], compile_seconds=t["compile"], run_seconds=t["run"])
+        row = _row(
+            name,
+            item,
+            status="done",
+            parts=len(seg.parts),
+            points=int(data.valid.sum()) if kind == "range_image" else int(np.isfinite(data).all(1).sum()),
+            seconds=t["total"],
+            compile_seconds=t["compile"],
+            run_seconds=t["run"],
+        )
         labels = getattr(data, "labels", None)
         if labels is not None:
             truth = np.asarray(cfg.truth(labels) if cfg.truth is not None else labels)
             score = hoover(truth, seg.labels, tolerance=0.8)
-            row.update(truth_parts=score.n_truth, correct=score.correct, over=score.over, under=score.under,
-                       missed=score.missed, noise=score.noise)
+            row.update(
+                truth_parts=score.n_truth,
+                correct=score.correct,
+                over=score.over,
+                under=score.under,
+                missed=score.missed,
+                noise=score.noise,
+            )
         out_dir = None
         if cfg.out is not None:
             out_dir = Path(cfg.out) / name
-            write_segmentation(seg, data, out_dir, input_path=item if _is_path(item) else None,
-                               input_shape=shape, settings=cfg.settings, figure=cfg.figure)
+            write_segmentation(
+                seg,
+                data,
+                out_dir,
+                input_path=item if _is_path(item) else None,
+                input_shape=shape,
+                settings=cfg.settings,
+                figure=cfg.figure,
+            )
         row["wall_seconds"] = time.perf_counter() - t0
         if out_dir is not None:
             marker = {"version": 1, "fingerprint": fingerprint, "row": row}
@@ -275,10 +313,22 @@ def _resumed(item, name, out: Path, fingerprint: str | None) -> SceneResult | No
 # many scenes
 
 
-def segment_many(inputs: Iterable, out=None, *, options=None, subsample: int = 1, truth: Callable | None = None,
-                 read: Callable | None = None, figure: bool = False, resume: bool = True,
-                 workers: int | None = None, scheduler=None, cache_dir=None, progress: bool | None = None,
-                 **kw) -> list[SceneResult]:
+def segment_many(
+    inputs: Iterable,
+    out=None,
+    *,
+    options=None,
+    subsample: int = 1,
+    truth: Callable | None = None,
+    read: Callable | None = None,
+    figure: bool = False,
+    resume: bool = True,
+    workers: int | None = None,
+    scheduler=None,
+    cache_dir=None,
+    progress: bool | None = None,
+    **kw,
+) -> list[SceneResult]:
     """Segment every input in one process (kernels compiled once), or on Dask distributed.
 
     **Arguments:**
@@ -309,18 +359,21 @@ def segment_many(inputs: Iterable, out=None, *, options=None, subsample: int = 1
         raise ValueError(f"segment_many: subsample must be >= 1, got {subsample}")
     items = list(inputs)
     names = _names(items)
-    settings = {"subsample": int(subsample),
-                "truth": getattr(truth, "__name__", None if truth is None else repr(truth)),
-                "options": dataclasses.asdict(opts)}
+    settings = {
+        "subsample": int(subsample),
+        "truth": getattr(truth, "__name__", None if truth is None else repr(truth)),
+        "options": dataclasses.asdict(opts),
+    }
     out = None if out is None else Path(os.fspath(out))
-    cfg = _Config(opts, read, int(subsample), truth, out, bool(figure), settings,
-                  None if cache_dir is None else str(cache_dir))
+    cfg = _Config(
+        opts, read, int(subsample), truth, out, bool(figure), settings, None if cache_dir is None else str(cache_dir)
+    )
     results: list = [None] * len(items)
     todo = []
     for i, (item, name) in enumerate(zip(items, names)):
         try:
             fp = _fingerprint(item, settings) if out is not None else None
-        except OSError as e:   # a missing file: its row says so
+        except OSError as e:  # a missing file: its row says so
             results[i] = SceneResult(_row(name, item, status="failed", error=_one_line(e, str(item)), wall_seconds=0.0))
             continue
         done = _resumed(item, name, out, fp) if out is not None and resume else None
@@ -353,20 +406,21 @@ def _run_dask(todo, cfg, results, bar, workers, scheduler):
     elif scheduler is not None:
         client = Client(scheduler)
     else:
-        cluster = LocalCluster(n_workers=int(workers), processes=True, threads_per_worker=1,
-                               dashboard_address=None)  # pyright: ignore[reportArgumentType]  (None: no dashboard)
+        cluster = LocalCluster(n_workers=int(workers), processes=True, threads_per_worker=1, dashboard_address=None)  # pyright: ignore[reportArgumentType]  (None: no dashboard)
         client = Client(cluster)
     try:
-        futures = {client.submit(run_scene, item, name, cfg, fp, pure=False): (i, item, name)
-                   for i, item, name, fp in todo}
+        futures = {
+            client.submit(run_scene, item, name, cfg, fp, pure=False): (i, item, name) for i, item, name, fp in todo
+        }
         for fut in as_completed(futures):
             i, item, name = futures[fut]
             try:
                 results[i] = fut.result()
             except Exception as e:  # noqa: BLE001 - a worker died or the task could not run
                 where = str(os.fspath(item)) if _is_path(item) else name
-                results[i] = SceneResult(_row(name, item, status="failed", error=_one_line(e, where),
-                                              wall_seconds=None))
+                results[i] = SceneResult(
+                    _row(name, item, status="failed", error=_one_line(e, where), wall_seconds=None)
+                )
             bar.update(results[i])
     finally:
         if client is not scheduler:
@@ -383,8 +437,13 @@ class _bar:
             from tqdm.auto import tqdm
         except ImportError:  # pragma: no cover
             tqdm = None
-        self.t = None if tqdm is None or enabled is False else \
-            tqdm(total=total, initial=initial, unit="scene", desc="sqjax", disable=None if enabled is None else False)
+        self.t = (
+            None
+            if tqdm is None or enabled is False
+            else tqdm(
+                total=total, initial=initial, unit="scene", desc="sqjax", disable=None if enabled is None else False
+            )
+        )
         self.failed = 0
 
     def update(self, result):
@@ -413,8 +472,9 @@ def write_summary(results, out, *, settings: dict | None = None) -> tuple[Path, 
     def write_csv(f):
         w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
         w.writeheader()
-        w.writerows({k: ("" if v is None else f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()}
-                    for r in rows)
+        w.writerows(
+            {k: ("" if v is None else f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows
+        )
 
     c = _atomic(out / "summary.csv", write_csv)
     return c, j
@@ -427,8 +487,10 @@ def summary_table(results) -> str:
     for r in (res.row for res in results):
         num = lambda k, f: "-" if r.get(k) is None else format(r[k], f)  # noqa: B023  (used within the iteration)
         corr = "-" if r.get("correct") is None else f"{r['correct']}/{r['truth_parts']}"
-        buf.write(f"{r['name'][:24]:24s} {r['status']:8s} {num('parts', 'd'):>5s} {num('run_seconds', '.2f'):>7s} "
-                  f"{num('compile_seconds', '.1f'):>9s} {corr:>8s}  {r.get('error') or ''}\n")
+        buf.write(
+            f"{r['name'][:24]:24s} {r['status']:8s} {num('parts', 'd'):>5s} {num('run_seconds', '.2f'):>7s} "
+            f"{num('compile_seconds', '.1f'):>9s} {corr:>8s}  {r.get('error') or ''}\n"
+        )
     return buf.getvalue()
 
 
@@ -438,8 +500,12 @@ def summary_table(results) -> str:
 
 def wants_many(args) -> bool:
     """True when `sqjax segment` was given several inputs, a folder, a glob or a cluster."""
-    return len(args.input) > 1 or bool(args.workers or args.scheduler) or Path(args.input[0]).is_dir() or \
-        (glob.has_magic(args.input[0]) and not Path(args.input[0]).exists())
+    return (
+        len(args.input) > 1
+        or bool(args.workers or args.scheduler)
+        or Path(args.input[0]).is_dir()
+        or (glob.has_magic(args.input[0]) and not Path(args.input[0]).exists())
+    )
 
 
 def cli_segment_many(args) -> int:
@@ -453,15 +519,23 @@ def cli_segment_many(args) -> int:
     paths = expand_inputs(args.input)
     read = functools.partial(load_input, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale)
     out = Path(args.out) if args.out else Path("sqjax-many")
-    results = segment_many(paths, out, options=dataclasses.replace(_segment_options(args.option, args.noise),
-                                                                   subsample=args.subsample),
-                           read=read, figure=not args.no_figure, workers=args.workers, scheduler=args.scheduler,
-                           progress=False if args.quiet else None)
+    results = segment_many(
+        paths,
+        out,
+        options=dataclasses.replace(_segment_options(args.option, args.noise), subsample=args.subsample),
+        read=read,
+        figure=not args.no_figure,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=False if args.quiet else None,
+    )
     failed = [r for r in results if r.status == "failed"]
     for r in failed:
         print(f"sqjax: error: {r.error}", file=sys.stderr)  # noqa: T201  (CLI output)
     if not args.quiet:
         print(summary_table(results), end="")  # noqa: T201  (CLI output)
-        print(f"wrote {out}{os.sep}: {len(results) - len(failed)} of {len(results)} scenes "  # noqa: T201
-              f"({sum(r.status == 'resumed' for r in results)} already done), summary.csv, summary.json")
+        print(  # noqa: T201  (CLI output)
+            f"wrote {out}{os.sep}: {len(results) - len(failed)} of {len(results)} scenes "
+            f"({sum(r.status == 'resumed' for r in results)} already done), summary.csv, summary.json"
+        )
     return 1 if failed else 0

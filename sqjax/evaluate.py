@@ -132,8 +132,21 @@ def hoover(truth, found, *, tolerance: float = 0.8, ignore=None) -> HooverScore:
             free_f[n], free_t[ms] = False, False
     missed = tuple(int(tid[m]) for m in np.nonzero(free_t)[0])
     noise = tuple(int(fid[n]) for n in np.nonzero(free_f)[0])
-    return HooverScore(len(pairs), len(over), len(under), len(missed), len(noise), len(tid), len(fid),
-                       float(tolerance), tuple(pairs), tuple(over), tuple(under), missed, noise)
+    return HooverScore(
+        len(pairs),
+        len(over),
+        len(under),
+        len(missed),
+        len(noise),
+        len(tid),
+        len(fid),
+        float(tolerance),
+        tuple(pairs),
+        tuple(over),
+        tuple(under),
+        missed,
+        noise,
+    )
 
 
 # ----------------------------------------------------------------------------------------------------

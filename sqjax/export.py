@@ -62,11 +62,27 @@ import numpy as np
 SCHEMA_VERSION = 1
 
 # Distinct, colour-blind-aware first colours (Okabe-Ito and Tableau), then golden-angle hues.
-_BASE = np.array([
-    (230, 159, 0), (86, 180, 233), (0, 158, 115), (213, 94, 0), (204, 121, 167), (0, 114, 178),
-    (240, 228, 66), (148, 103, 189), (140, 86, 75), (188, 189, 34), (23, 190, 207), (255, 127, 14),
-    (44, 160, 44), (214, 39, 40), (127, 127, 127), (31, 119, 180),
-], np.uint8)
+_BASE = np.array(
+    [
+        (230, 159, 0),
+        (86, 180, 233),
+        (0, 158, 115),
+        (213, 94, 0),
+        (204, 121, 167),
+        (0, 114, 178),
+        (240, 228, 66),
+        (148, 103, 189),
+        (140, 86, 75),
+        (188, 189, 34),
+        (23, 190, 207),
+        (255, 127, 14),
+        (44, 160, 44),
+        (214, 39, 40),
+        (127, 127, 127),
+        (31, 119, 180),
+    ],
+    np.uint8,
+)
 BACKGROUND = (0, 0, 0)
 """labels.png colour of pixels without data."""
 UNEXPLAINED = (96, 96, 96)
@@ -166,7 +182,8 @@ def part_meshes(parts, resolution: int = 32) -> list:
     for part, c in zip(parts, colors):
         m = to_trimesh(_superquadric(part), resolution)
         m.visual.vertex_colors = np.tile(  # pyright: ignore[reportAttributeAccessIssue, reportOptionalMemberAccess]
-            np.append(c, 255).astype(np.uint8), (len(m.vertices), 1))
+            np.append(c, 255).astype(np.uint8), (len(m.vertices), 1)
+        )
         meshes.append(m)
     return meshes
 
@@ -185,8 +202,9 @@ def parts_to_scene(parts, resolution: int = 32, *, y_up: bool = False):
 
     scene = trimesh.Scene()
     for i, m in enumerate(part_meshes(parts, resolution)):
-        scene.add_geometry(m, node_name=f"part_{i + 1}", geom_name=f"part_{i + 1}",
-                           transform=GLTF_FROM_CAMERA if y_up else None)
+        scene.add_geometry(
+            m, node_name=f"part_{i + 1}", geom_name=f"part_{i + 1}", transform=GLTF_FROM_CAMERA if y_up else None
+        )
     return scene
 
 
@@ -207,16 +225,22 @@ def labelled_points_to_ply(points, labels, path) -> Path:
     n = int(labels.max()) if labels.size else 0
     lut = np.concatenate([np.array([UNEXPLAINED], np.uint8), label_colors(n)])
     rgb = lut[labels]
-    rec = np.empty(len(pts), [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
-                              ("blue", "u1"), ("label", "<i4")])
+    rec = np.empty(
+        len(pts),
+        [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("label", "<i4")],
+    )
     for i, k in enumerate("xyz"):
         rec[k] = pts[:, i]
     rec["red"], rec["green"], rec["blue"], rec["label"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], labels
     path = Path(path)
     with open(path, "wb") as f:
-        f.write((f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n"
-                 "property double x\nproperty double y\nproperty double z\nproperty uchar red\n"
-                 "property uchar green\nproperty uchar blue\nproperty int label\nend_header\n").encode())
+        f.write(
+            (
+                f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n"
+                "property double x\nproperty double y\nproperty double z\nproperty uchar red\n"
+                "property uchar green\nproperty uchar blue\nproperty int label\nend_header\n"
+            ).encode()
+        )
         f.write(rec.tobytes())
     return path
 
@@ -256,17 +280,27 @@ def segmentation_dict(seg, image=None, *, input_path=None, input_shape=None, set
     parts = []
     for i, (p, c) in enumerate(zip(seg.parts, colors)):
         n = int(p.num_explained)
-        parts.append({"label": i + 1, "color": c.tolist(), **superquadric_dict(p.superquadric),
-                      "num_points": int(p.num_points), "num_explained": n,
-                      "error": float(p.error), "rms_distance": float(np.sqrt(p.error / n)) if n else None})
+        parts.append(
+            {
+                "label": i + 1,
+                "color": c.tolist(),
+                **superquadric_dict(p.superquadric),
+                "num_points": int(p.num_points),
+                "num_explained": n,
+                "error": float(p.error),
+                "rms_distance": float(np.sqrt(p.error / n)) if n else None,
+            }
+        )
     is_image = image is not None
     labels = np.asarray(seg.labels)
     doc = {
         "version": SCHEMA_VERSION,
         "sqjax_version": __version__,
-        "input": {"path": None if input_path is None else str(input_path),
-                  "kind": "range_image" if is_image else "point_cloud",
-                  "shape": list(input_shape) if input_shape is not None else list(labels.shape)},
+        "input": {
+            "path": None if input_path is None else str(input_path),
+            "kind": "range_image" if is_image else "point_cloud",
+            "shape": list(input_shape) if input_shape is not None else list(labels.shape),
+        },
         "image_size": list(labels.shape) if is_image else None,
         "num_points": int(image.valid.sum()) if is_image else int(labels.size),
         "camera": image.camera.to_dict() if is_image else None,
@@ -287,16 +321,18 @@ def fit_dict(result, *, input_path=None) -> dict:
     n = int(np.asarray(result.num_points))
     cost = float(np.asarray(result.cost))
     dist = np.asarray(result.distance, float)
-    return _jsonable({
-        "version": SCHEMA_VERSION,
-        "sqjax_version": __version__,
-        "input": None if input_path is None else str(input_path),
-        **superquadric_dict(result.superquadric),
-        "cost": cost,
-        "converged": bool(np.asarray(result.converged)),
-        "num_points": n,
-        "rms_distance": float(np.sqrt(np.sum(dist**2) / n)) if n else None,
-    })
+    return _jsonable(
+        {
+            "version": SCHEMA_VERSION,
+            "sqjax_version": __version__,
+            "input": None if input_path is None else str(input_path),
+            **superquadric_dict(result.superquadric),
+            "cost": cost,
+            "converged": bool(np.asarray(result.converged)),
+            "num_points": n,
+            "rms_distance": float(np.sqrt(np.sum(dist**2) / n)) if n else None,
+        }
+    )
 
 
 _NUMBERS = r"-?[0-9][0-9.eE+-]*|null|true|false"
@@ -310,7 +346,7 @@ def dumps(doc) -> str:
     plain = json.dumps(doc, indent=2, allow_nan=False)
     text = _FLAT_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", plain)
     text = _NESTED_LIST.sub(lambda m: "[" + ", ".join(re.findall(r"\[[^\[\]]*\]", m.group(1))) + "]", text)
-    return text if json.loads(text) == doc else plain   # a string that looked like a list: keep it as it was
+    return text if json.loads(text) == doc else plain  # a string that looked like a list: keep it as it was
 
 
 def write_json(doc: dict, path) -> Path:
@@ -328,8 +364,11 @@ def write_json(doc: dict, path) -> Path:
 
 def _write_error(path, e: OSError) -> OSError:
     """An OSError whose message names `path` (the caller's target, not a temporary)."""
-    return OSError(e.errno, f"{path}: cannot write ({e.strerror or type(e).__name__})") if e.errno else \
-        OSError(f"{path}: cannot write ({e})")
+    return (
+        OSError(e.errno, f"{path}: cannot write ({e.strerror or type(e).__name__})")
+        if e.errno
+        else OSError(f"{path}: cannot write ({e})")
+    )
 
 
 def check_writable_dir(path) -> Path:
@@ -382,13 +421,14 @@ def atomic_paths(*paths):
             if t.is_dir() and not t.is_symlink():
                 raise IsADirectoryError(errno.EISDIR, f"{t}: is a folder, expected a file name")
             try:
-                fd, tmp = tempfile.mkstemp(prefix=f".{t.name}.", suffix=t.suffix,
-                                           dir=t.parent if str(t.parent) else ".")
+                fd, tmp = tempfile.mkstemp(
+                    prefix=f".{t.name}.", suffix=t.suffix, dir=t.parent if str(t.parent) else "."
+                )
             except OSError as e:
                 raise _write_error(t, e) from None
             os.close(fd)
             tmps.append(Path(tmp))
-            os.chmod(tmp, 0o666 & ~_umask())   # mkstemp makes 0600; outputs get the usual permissions
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
         try:
             yield tuple(tmps)
         except OSError as e:
@@ -423,12 +463,22 @@ def superquadric_from_dict(d: dict):
     if "size" not in d:
         raise ValueError(f"a superquadric needs 'size' (keys: {', '.join(sorted(d)) or 'none'})")
     try:
-        arr = {k: np.asarray(d[k], np.float64) for k in ("size", "epsilon", "rotation", "euler_zyz",
-                                                         "translation", "taper", "bend") if d.get(k) is not None}
+        arr = {
+            k: np.asarray(d[k], np.float64)
+            for k in ("size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend")
+            if d.get(k) is not None
+        }
     except (TypeError, ValueError) as e:
         raise ValueError(f"a superquadric's parameters must be numbers ({e})") from None
-    shapes = {"size": (3,), "epsilon": (2,), "rotation": (3, 3), "euler_zyz": (3,), "translation": (3,),
-              "taper": (2,), "bend": (2,)}
+    shapes = {
+        "size": (3,),
+        "epsilon": (2,),
+        "rotation": (3, 3),
+        "euler_zyz": (3,),
+        "translation": (3,),
+        "taper": (2,),
+        "bend": (2,),
+    }
     for k, v in arr.items():
         if v.shape != shapes[k] or not np.isfinite(v).all():
             raise ValueError(f"superquadric '{k}' must be {shapes[k]} finite numbers, got {d[k]!r}")
@@ -470,8 +520,7 @@ def read_models_json(path) -> dict:
     except OSError as e:
         raise OSError(e.errno, f"{path}: cannot read ({e.strerror})") from None
     if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a JSON object (a models.json written by sqjax), got a "
-                         f"{type(doc).__name__}")
+        raise ValueError(f"{path}: expected a JSON object (a models.json written by sqjax), got a {type(doc).__name__}")
     parts = doc.get("parts", [])
     if not isinstance(parts, list) or not all(isinstance(p, dict) for p in parts):
         raise ValueError(f"{path}: 'parts' must be a list of objects")
@@ -516,12 +565,21 @@ def read_segmentation(out_dir) -> SavedSegmentation:
 # ----------------------------------------------------------------------------------------------------
 # everything the CLI writes
 
-OUTPUT_NAMES = ("models.json", "labels.npy", "labels.png", "labels_id.png", "labels.ply", "parts.glb",
-                "parts.ply", "figure.png")
+OUTPUT_NAMES = (
+    "models.json",
+    "labels.npy",
+    "labels.png",
+    "labels_id.png",
+    "labels.ply",
+    "parts.glb",
+    "parts.ply",
+    "figure.png",
+)
 
 
-def write_segmentation(seg, image, out_dir, *, input_path=None, input_shape=None, settings=None,
-                       figure: bool = True, resolution: int = 32) -> dict:
+def write_segmentation(
+    seg, image, out_dir, *, input_path=None, input_shape=None, settings=None, figure: bool = True, resolution: int = 32
+) -> dict:
     """Write a `Segmentation` into `out_dir` (created) and return `{name: Path}` of what was written.
 
     - `models.json`: parameters and run information (module docstring).
@@ -545,8 +603,9 @@ def write_segmentation(seg, image, out_dir, *, input_path=None, input_shape=None
     stage = Path(tempfile.mkdtemp(prefix=".sqjax-write-", dir=out))
     made = {}
     try:
-        doc = segmentation_dict(seg, image if is_image else None, input_path=input_path,
-                                input_shape=input_shape, settings=settings)
+        doc = segmentation_dict(
+            seg, image if is_image else None, input_path=input_path, input_shape=input_shape, settings=settings
+        )
         (stage / "models.json").write_text(dumps(doc) + "\n")
         made["models.json"] = None
         labels = np.asarray(seg.labels, np.int32)
@@ -581,7 +640,7 @@ def write_segmentation(seg, image, out_dir, *, input_path=None, input_shape=None
             written[name] = out / name
         for name in OUTPUT_NAMES:
             if name not in written and os.path.lexists(out / name) and not (out / name).is_dir():
-                (out / name).unlink()   # left by an earlier run: would not match (a symlink: the link goes)
+                (out / name).unlink()  # left by an earlier run: would not match (a symlink: the link goes)
     except OSError as e:
         if e.filename is not None and str(stage) in str(e.filename):
             raise _write_error(out / Path(e.filename).name, e) from None

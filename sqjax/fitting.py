@@ -122,8 +122,9 @@ class FitOptions(eqx.Module):
             raise ValueError(f"FitOptions.residual must be one of {RESIDUALS}, got {self.residual!r}")
         if int(self.robust_rounds) < 1:
             raise ValueError(f"FitOptions.robust_rounds must be >= 1, got {self.robust_rounds}")
-        if not isinstance(self.size_bound, bool) and (jnp.shape(self.size_bound) != ()
-                                                      or jnp.result_type(self.size_bound) != jnp.bool_):
+        if not isinstance(self.size_bound, bool) and (
+            jnp.shape(self.size_bound) != () or jnp.result_type(self.size_bound) != jnp.bool_
+        ):
             raise ValueError(f"FitOptions.size_bound must be a bool or a boolean scalar array, got {self.size_bound!r}")
         if not self.epsilon_starts or any(len(e) != 2 for e in self.epsilon_starts):
             raise ValueError(f"FitOptions.epsilon_starts must be pairs (e1, e2), got {self.epsilon_starts}")
@@ -259,7 +260,7 @@ def _residual_point(x, y, z, la, e, d, deform: bool, kind: str = "distance"):
     if kind == "size_weighted":
         return jnp.exp(0.5 * (la[0] + la[1] + la[2])) * jnp.expm1(_log_f_point(x, y, z, la, e, d, deform))
     p = jnp.stack([x, y, z])
-    if deform:   # the distance in the undeformed frame over the stretch of the undeforming map
+    if deform:  # the distance in the undeformed frame over the stretch of the undeforming map
         return deformed_distance(p, la, e, d[0:2], d[2:4])
     lf, log_gn, _ = log_inside_outside_and_gradient(p, la, e)
     return distance_from_log(lf, log_gn)
@@ -292,9 +293,19 @@ def _normal_equations(state, points, mask, opts, weight=None):
     argnums = (0, 1, 2, 3, 4, 5) if opts.deform else (0, 1, 2, 3, 4)
     r, grads = _point_fn(opts, argnums)(x, y, z, la, e, d)
     gx, gy, gz, gla, ge = grads[:5]
-    rows = [gla[:, 0], gla[:, 1], gla[:, 2], ge[:, 0], ge[:, 1],
-            gy * z - gz * y, gz * x - gx * z, gx * y - gy * x,        # rotation: g x x
-            gx, gy, gz]                                              # model-frame shift
+    rows = [
+        gla[:, 0],
+        gla[:, 1],
+        gla[:, 2],
+        ge[:, 0],
+        ge[:, 1],
+        gy * z - gz * y,
+        gz * x - gx * z,
+        gx * y - gy * x,  # rotation: g x x
+        gx,
+        gy,
+        gz,
+    ]  # model-frame shift
     if opts.deform:
         rows += [grads[5][:, i] for i in range(4)]
     w = mask.astype(points.dtype) if weight is None else jnp.where(mask, jnp.sqrt(weight), 0.0)
@@ -319,7 +330,7 @@ def _point_distances(state, points, mask, opts):
     r, (gx, gy, gz) = _point_fn(opts, (0, 1, 2))(x, y, z, la, e, d)
     fin = jnp.finfo(points.dtype)
     g = jnp.sqrt(gx * gx + gy * gy + gz * gz)
-    dist = jnp.minimum(jnp.abs(r) / jnp.maximum(g, jnp.sqrt(fin.tiny)), fin.max ** 0.25)
+    dist = jnp.minimum(jnp.abs(r) / jnp.maximum(g, jnp.sqrt(fin.tiny)), fin.max**0.25)
     return jnp.where(mask, dist, 0.0)
 
 
@@ -382,7 +393,7 @@ def _retract(state, step, opts):
     R = R @ so3.exp(step[5:8])
     if opts.deform:
         d = d + step[11:15]
-        alpha = jnp.remainder(d[3] + jnp.pi, 2 * jnp.pi) - jnp.pi    # the bending angle is periodic
+        alpha = jnp.remainder(d[3] + jnp.pi, 2 * jnp.pi) - jnp.pi  # the bending angle is periodic
         d = jnp.stack([jnp.clip(d[0], -1.0, 1.0), jnp.clip(d[1], -1.0, 1.0), jnp.maximum(d[2], 0.0), alpha])
     return la, e, R, t, d
 
@@ -414,8 +425,15 @@ def _levenberg_marquardt(state, points, mask, opts, num_steps, weight=None):
         return state, cost, JTJ, JTr, lam, rel, _bounded(_retract(state, step, opts), points, mask, opts)
 
     zeros = jnp.zeros((P, P), dtype)
-    init = (state, jnp.asarray(jnp.inf, dtype), zeros, zeros[0], jnp.asarray(_LM_LAMBDA0, dtype),
-            jnp.asarray(1.0, dtype), _bounded(state, points, mask, opts))
+    init = (
+        state,
+        jnp.asarray(jnp.inf, dtype),
+        zeros,
+        zeros[0],
+        jnp.asarray(_LM_LAMBDA0, dtype),
+        jnp.asarray(1.0, dtype),
+        _bounded(state, points, mask, opts),
+    )
     state, cost, _, _, lam, rel, _ = jax.lax.fori_loop(0, num_steps + 1, body, init)
     # Converged: the last steps stopped paying (a rejected step with a large damping, or a tiny gain).
     converged = jnp.isfinite(cost) & ((rel < 1e-4) | (lam > 1e3))
@@ -425,7 +443,7 @@ def _levenberg_marquardt(state, points, mask, opts, num_steps, weight=None):
 # ----------------------------------------------------------------------------------------------------
 # initial estimates (points (3, N) normalised: centroid 0, rms radius 1)
 
-_PERMS = ((0, 1, 2), (1, 2, 0), (2, 0, 1))   # cyclic: the rotation keeps det +1
+_PERMS = ((0, 1, 2), (1, 2, 0), (2, 0, 1))  # cyclic: the rotation keeps det +1
 
 
 def _take(x, idx, axis: int = 0):
@@ -454,9 +472,13 @@ def _extent(local, mask):
 def _three(centre, V, half, dtype):
     """The three axis assignments (which eigenvector becomes the model z axis) of one ellipsoid start."""
     half = jnp.maximum(half, 1e-3 * jnp.max(half) + jnp.finfo(dtype).eps)
-    return (jnp.stack([jnp.log(_take(half, p)) for p in _PERMS]), jnp.ones((3, 2), dtype),
-            jnp.stack([_take(V, p, 1) for p in _PERMS]),
-            jnp.broadcast_to(centre, (3, 3)), jnp.zeros((3, 4), dtype))
+    return (
+        jnp.stack([jnp.log(_take(half, p)) for p in _PERMS]),
+        jnp.ones((3, 2), dtype),
+        jnp.stack([_take(V, p, 1) for p in _PERMS]),
+        jnp.broadcast_to(centre, (3, 3)),
+        jnp.zeros((3, 4), dtype),
+    )
 
 
 def _moment_starts(points, mask):
@@ -566,6 +588,7 @@ def _robust_scores(states, points, mask, opts):
     Per point min(f^2, (c s grad f)^2): the size-weighted squared residual of a point within c s of the
     surface (its eq. 10 distance d = |f| / |grad f|), a constant of the model beyond, with c = 4.685 and
     s the smallest MAD scale of the candidates (the noise as the best of them sees it)."""
+
     def per_point(state):
         la, e, _, _, d = state
         x, y, z = _model_frame(state, points)
@@ -588,7 +611,7 @@ def _subsample(points, mask, n: int):
 
     All of them (and padding) when there are at most `n`. Used to screen the starting candidates.
     """
-    order = jnp.argsort(~mask, stable=True)          # valid points first, order kept
+    order = jnp.argsort(~mask, stable=True)  # valid points first, order kept
     nv = jnp.sum(mask)
     i = jnp.arange(n)
     j = jnp.where(nv <= n, i, (i * nv) // n)
@@ -627,7 +650,7 @@ def _multistart(points, mask, opts):
 
 
 def _solve(inputs):
-    points, mask, theta0, opts, _ = inputs   # the adjoint appends a while-loop implementation
+    points, mask, theta0, opts, _ = inputs  # the adjoint appends a while-loop implementation
     if theta0 is not None:
         state, cost, conv = _levenberg_marquardt(_split(theta0, opts), points, mask, opts, opts.max_steps)
     elif opts.multistart:
@@ -675,13 +698,13 @@ def _fit_one(points, mask, theta0, opts: FitOptions):
     scale = jnp.sqrt(jnp.sum(centred * centred) / n + jnp.finfo(dtype).tiny)
     scale = jnp.where(scale > 0, scale, 1.0)
     pn = (centred / scale).T
-    if theta0 is not None:   # original units -> normalised chart
+    if theta0 is not None:  # original units -> normalised chart
         theta0 = theta0.at[0:3].add(-jnp.log(scale)).at[8:11].set((theta0[8:11] - centre) / scale)
         if opts.deform:
             theta0 = theta0.at[13].multiply(scale)
     adjoint = optx.ImplicitAdjoint(lx.AutoLinearSolver(well_posed=False))  # SVD: a sphere's pose is not unique
     theta, (cost, conv, weight) = adjoint.apply(_solve, _stationarity, (pn, mask, theta0, opts), frozenset())
-    if opts.deform:   # deformations only where they pay for themselves: nested models
+    if opts.deform:  # deformations only where they pay for themselves: nested models
         plain = dataclasses.replace(opts, deform=False)
         th0 = None if theta0 is None else theta0[: plain.num_params]
         theta_u, aux_u = adjoint.apply(_solve, _stationarity, (pn, mask, th0, plain), frozenset())
@@ -691,12 +714,13 @@ def _fit_one(points, mask, theta0, opts: FitOptions):
         nested = adjoint.apply(_solve, _stationarity, (pn, mask, jax.lax.stop_gradient(flat), opts), frozenset())
         choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
         theta, (cost, conv, weight) = choose(nested[1][0] < cost, nested, (theta, (cost, conv, weight)))
-        theta, (cost, conv, weight) = choose(_deformation_pays(cost, aux_u[0], n), (theta, (cost, conv, weight)),
-                                             (flat, aux_u))
+        theta, (cost, conv, weight) = choose(
+            _deformation_pays(cost, aux_u[0], n), (theta, (cost, conv, weight)), (flat, aux_u)
+        )
     theta = theta.at[0:3].add(jnp.log(scale)).at[8:11].set(theta[8:11] * scale + centre)
     if opts.deform:
         theta = theta.at[13].divide(scale)
-    cost = cost * scale ** (3 if opts.residual == "size_weighted" else 2)   # f ~ sqrt(a1 a2 a3); d ~ length
+    cost = cost * scale ** (3 if opts.residual == "size_weighted" else 2)  # f ~ sqrt(a1 a2 a3); d ~ length
     sq = to_superquadric(theta, opts)
     dist = jnp.where(mask, distance(sq, points), 0.0)
     return theta, cost, conv, dist, weight
@@ -752,8 +776,12 @@ def _init_theta(init, opts):
     """Warm-start fields (size, epsilon, rotation, translation, taper, bend), batched -> theta0 (K, P) and
     a (K,) flag of the valid ones; invalid ones (non-finite, size <= 0) are replaced by a unit sphere."""
     size, eps, R, t, taper, bend = init
-    ok = (jnp.all(jnp.isfinite(size) & (size > 0), -1) & jnp.all(jnp.isfinite(eps), -1)
-          & jnp.all(jnp.isfinite(R), (-2, -1)) & jnp.all(jnp.isfinite(t), -1))
+    ok = (
+        jnp.all(jnp.isfinite(size) & (size > 0), -1)
+        & jnp.all(jnp.isfinite(eps), -1)
+        & jnp.all(jnp.isfinite(R), (-2, -1))
+        & jnp.all(jnp.isfinite(t), -1)
+    )
     if opts.deform:
         ok = ok & jnp.all(jnp.isfinite(taper), -1) & jnp.all(jnp.isfinite(bend), -1)
     lo, hi = opts.epsilon_range
@@ -784,8 +812,9 @@ def _fit_sharded(points, mask, init, opts: FitOptions):
     mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
     spec = jax.sharding.PartitionSpec("k")
     body = lambda p, m, i: _fit_problems(p, m, i, opts)
-    return jax.shard_map(body, mesh=mesh, in_specs=(spec, spec, None if init is None else spec),
-                         out_specs=spec, check_vma=False)(points, mask, init)
+    return jax.shard_map(
+        body, mesh=mesh, in_specs=(spec, spec, None if init is None else spec), out_specs=spec, check_vma=False
+    )(points, mask, init)
 
 
 def _use_devices(K: int) -> bool:
@@ -812,8 +841,9 @@ def _nanmedian(xp, v, axis):
     if xp is np:
         with np.errstate(all="ignore"):
             import warnings
+
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN problems are caught elsewhere
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN problems are caught elsewhere
                 return np.nanmedian(v, axis=axis)
     return jnp.nanmedian(v, axis=axis)
 
@@ -852,8 +882,14 @@ def _degenerate(xp, rel, mask):
 
 def _init_fields(xp, init, K, dtype, centre, deform):
     """Warm start -> batched fields (K, ...) in the centred frame; on the host, checks that name the field."""
-    fields = {"size": init.size, "epsilon": init.epsilon, "rotation": init.rotation,
-              "translation": init.translation, "taper": init.taper, "bend": init.bend}
+    fields = {
+        "size": init.size,
+        "epsilon": init.epsilon,
+        "rotation": init.rotation,
+        "translation": init.translation,
+        "taper": init.taper,
+        "bend": init.bend,
+    }
     fields = {k: (np.asarray(v, np.float64) if xp is np else v) for k, v in fields.items()}
     single = fields["size"].ndim == 1
     if single:
@@ -881,17 +917,32 @@ def _status(xp, opts, size, eps, taper, cost, conv, dist, mask, degenerate, init
         bound = bound | xp.any(xp.abs(taper) >= 1.0 - 1e-3, -1)
     med = _nanmedian(xp, xp.where(mask, dist, xp.nan), 1)
     limit = 3.0 * noise if noise is not None else 0.02 * xp.mean(size, -1)
-    flags = [(~conv, Status.MAX_STEPS), (bound, Status.BOUND_ACTIVE), (med > limit, Status.LARGE_RESIDUAL),
-             (degenerate | ~init_ok, Status.DEGENERATE), (n < MIN_POINTS, Status.TOO_FEW_POINTS),
-             (~finite, Status.NONFINITE), (far, Status.FAR_POINTS)]
+    flags = [
+        (~conv, Status.MAX_STEPS),
+        (bound, Status.BOUND_ACTIVE),
+        (med > limit, Status.LARGE_RESIDUAL),
+        (degenerate | ~init_ok, Status.DEGENERATE),
+        (n < MIN_POINTS, Status.TOO_FEW_POINTS),
+        (~finite, Status.NONFINITE),
+        (far, Status.FAR_POINTS),
+    ]
     status = xp.zeros(n.shape, xp.int32)
     for cond, flag in flags:
         status = status | xp.where(cond, int(flag), 0).astype(xp.int32)
     return status
 
 
-def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOptions | None = None,
-        dtype=None, noise: float | None = None, far_factor: float | None = 100.0, **kw) -> Fit:
+def fit(
+    points,
+    mask=None,
+    *,
+    init: Superquadric | None = None,
+    options: FitOptions | None = None,
+    dtype=None,
+    noise: float | None = None,
+    far_factor: float | None = 100.0,
+    **kw,
+) -> Fit:
     """Recover superquadrics from one point set `(N, 3)` or many `(K, N, 3)` (Solina & Bajcsy).
 
     **Arguments:**
@@ -951,8 +1002,11 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
             got = tuple(mask.shape[1:]) if single else tuple(mask.shape)
             raise ValueError(f"fit: mask shape {got} does not match the points, expected {expected}")
     # centring precision: float64 on the host; under tracing the input's own dtype (then cast)
-    points = points.astype(np.float64) if xp is np else (jnp.asarray(points) if jnp.issubdtype(
-        points.dtype, jnp.floating) else jnp.asarray(points, dtype))
+    points = (
+        points.astype(np.float64)
+        if xp is np
+        else (jnp.asarray(points) if jnp.issubdtype(points.dtype, jnp.floating) else jnp.asarray(points, dtype))
+    )
     finite = xp.all(xp.isfinite(points), -1)
     mask = finite if mask is None else (xp.asarray(mask) & finite)
     if xp is np:
@@ -960,21 +1014,23 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
         bad = np.nonzero(counts < MIN_POINTS)[0]
         if bad.size:
             which = "" if single else f"problem {int(bad[0])} has "
-            raise ValueError(f"fit: too few valid (finite, unmasked) points: {which}{int(counts[bad[0]])}, "
-                             f"at least {MIN_POINTS} are needed (one per parameter)")
+            raise ValueError(
+                f"fit: too few valid (finite, unmasked) points: {which}{int(counts[bad[0]])}, "
+                f"at least {MIN_POINTS} are needed (one per parameter)"
+            )
     centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
     degenerate = _degenerate(xp, rel, mask)
-    Kb, Nb = bucket(K, 1), bucket(N, 128)   # small problems share one kernel: padding 128 points costs ~nothing
+    Kb, Nb = bucket(K, 1), bucket(N, 128)  # small problems share one kernel: padding 128 points costs ~nothing
     pts = xp.pad(rel.astype(dtype), ((0, Kb - K), (0, Nb - N), (0, 0)))
     msk = xp.pad(mask, ((0, Kb - K), (0, Nb - N)))
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)
-    if Kb > K:   # pad the batch with copies of problem 0, dropped below
+    if Kb > K:  # pad the batch with copies of problem 0, dropped below
         rep = lambda v: xp.concatenate([v[:K], xp.repeat(v[:1], Kb - K, 0)])
         pts, msk = rep(pts), rep(msk)
         fields = None if fields is None else tuple(rep(v) for v in fields)
     kernel = _fit_sharded if xp is np and _use_devices(Kb) else _fit_kernel
     out = kernel(pts, msk, fields, options)
-    if xp is np:   # crop in numpy: no small compiled ops per shape
+    if xp is np:  # crop in numpy: no small compiled ops per shape
         out = jax.tree.map(np.asarray, out)
     sqf, cost, conv, dist, weight, init_ok = jax.tree.map(lambda v: v[:K], out)
     dist, weight, msk = dist[:, :N], weight[:, :N], msk[:K, :N]
@@ -982,18 +1038,25 @@ def fit(points, mask=None, *, init: Superquadric | None = None, options: FitOpti
     t = t.astype(centre.dtype) + centre
     finite_out = xp.isfinite(cost) & xp.all(xp.isfinite(size), -1) & xp.all(xp.isfinite(t), -1)
     finite_out = finite_out & xp.all(xp.isfinite(eps), -1) & xp.all(xp.isfinite(R), (-2, -1))
-    status = _status(xp, options, size, eps, taper, cost, conv, dist, msk, degenerate, init_ok, finite_out,
-                     far, noise)
+    status = _status(xp, options, size, eps, taper, cost, conv, dist, msk, degenerate, init_ok, finite_out, far, noise)
     converged = conv & ((status & int(_FAILED)) == 0)
     # never hand out NaN: a non-finite fit is replaced by the moment-free unit sphere at the centre
     keep = lambda v, d: xp.where(finite_out.reshape((K,) + (1,) * (v.ndim - 1)), v, d)
-    sq = Superquadric(keep(size, 1.0), keep(eps, 1.0), keep(R, xp.eye(3, dtype=R.dtype)),
-                      keep(t, centre).astype(dtype), taper, bend)
+    sq = Superquadric(
+        keep(size, 1.0), keep(eps, 1.0), keep(R, xp.eye(3, dtype=R.dtype)), keep(t, centre).astype(dtype), taper, bend
+    )
     cost = xp.where(finite_out, cost, xp.inf)
     dist = xp.where(finite_out[:, None] & msk, dist, 0.0)
     weight = xp.where(msk, weight, 0.0)
-    res = Fit(sq, cost, dist, converged, xp.sum(msk, -1).astype(xp.int32),  # pyright: ignore[reportArgumentType]  (numpy off-trace)
-              weight.astype(dtype), status)  # pyright: ignore[reportArgumentType]
+    res = Fit(  # pyright: ignore[reportArgumentType]  (numpy off-trace)
+        sq,
+        cost,  # pyright: ignore[reportArgumentType]
+        dist,  # pyright: ignore[reportArgumentType]
+        converged,
+        xp.sum(msk, -1).astype(xp.int32),  # pyright: ignore[reportArgumentType]
+        weight.astype(dtype),  # pyright: ignore[reportArgumentType]
+        status,
+    )
     if single:
         res = jax.tree.map(lambda v: v[0], res)
     # device_put, not jnp.asarray: the latter compiles a small "stage" op for every new shape

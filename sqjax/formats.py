@@ -30,8 +30,18 @@ import numpy as np
 
 from .rangeimage import Camera, OrthographicCamera, PinholeCamera, RangeImage
 
-_PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4",
-              ("U", 8): "<u8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8"}
+_PCD_TYPES = {
+    ("F", 4): "<f4",
+    ("F", 8): "<f8",
+    ("U", 1): "u1",
+    ("U", 2): "<u2",
+    ("U", 4): "<u4",
+    ("U", 8): "<u8",
+    ("I", 1): "i1",
+    ("I", 2): "<i2",
+    ("I", 4): "<i4",
+    ("I", 8): "<i8",
+}
 _READ_ERRORS = (ValueError, EOFError, struct.error, zipfile.BadZipFile, zlib.error, pickle.UnpicklingError)
 
 
@@ -138,8 +148,10 @@ def _read_pcd(path: Path):
             raise ValueError("PCD binary_compressed data truncated (no size words)")
         csize, usize = struct.unpack("<II", body[:8])
         if len(body) - 8 < csize or usize != need:
-            raise ValueError(f"PCD binary_compressed data truncated or inconsistent ({len(body)} bytes, "
-                             f"compressed size {csize}, uncompressed {usize}, header needs {need})")
+            raise ValueError(
+                f"PCD binary_compressed data truncated or inconsistent ({len(body)} bytes, "
+                f"compressed size {csize}, uncompressed {usize}, header needs {need})"
+            )
         buf, off = lzf_decompress(body[8 : 8 + csize], usize), 0
         for n, d, c in zip(names, dts, counts):
             fields[n] = np.frombuffer(buf, d, npts * c, off).reshape(npts, c)
@@ -167,8 +179,13 @@ def _pcd_image(path):
     if height <= 1:
         raise ValueError(f"unorganised PCD (HEIGHT {height}, WIDTH {width}) is not a range image; use read_points")
     xyz = xyz.reshape(height, width, 3)
-    return (xyz[..., 2], None if labels is None else labels.reshape(height, width), xyz, None,
-            None if rgb is None else rgb.reshape(height, width, 3))
+    return (
+        xyz[..., 2],
+        None if labels is None else labels.reshape(height, width),
+        xyz,
+        None,
+        None if rgb is None else rgb.reshape(height, width, 3),
+    )
 
 
 def _write_pcd(path, image: RangeImage, data="binary", **_):
@@ -179,9 +196,13 @@ def _write_pcd(path, image: RangeImage, data="binary", **_):
         cols["label"] = image.labels.reshape(-1).astype("<i4" if (image.labels < 0).any() else "<u4")
     (h, w), types = image.shape, " ".join(c.dtype.kind.upper() for c in cols.values())  # F, U or I
     with open(path, "wb") as f:
-        f.write((f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {' '.join(cols)}\n"
-                 f"SIZE {' '.join('4' * len(cols))}\nTYPE {types}\nCOUNT {' '.join('1' * len(cols))}\n"
-                 f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {h * w}\nDATA {data}\n").encode())
+        f.write(
+            (
+                f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {' '.join(cols)}\n"
+                f"SIZE {' '.join('4' * len(cols))}\nTYPE {types}\nCOUNT {' '.join('1' * len(cols))}\n"
+                f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {h * w}\nDATA {data}\n"
+            ).encode()
+        )
         if data == "binary":
             rec = np.empty(h * w, [(n, c.dtype) for n, c in cols.items()])
             for n, c in cols.items():
@@ -201,8 +222,10 @@ def _load_npy(path):
         return np.load(path, allow_pickle=False)
     except ValueError as e:
         if "allow_pickle" in str(e):
-            raise ValueError("holds a pickled Python object, not loaded for safety; if you trust the file, use "
-                             "np.load(path, allow_pickle=True) and build the RangeImage yourself") from None
+            raise ValueError(
+                "holds a pickled Python object, not loaded for safety; if you trust the file, use "
+                "np.load(path, allow_pickle=True) and build the RangeImage yourself"
+            ) from None
         raise
     except Exception as e:  # numpy parses the header with tokenize / ast: damaged ones fail in many ways
         raise ValueError(f"damaged .npy ({type(e).__name__}: {e})") from None
@@ -243,8 +266,10 @@ def _open_image(path, what: str = "image"):
             im.load()
             return im
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
-        raise ValueError(f"{what} refused as a possible decompression bomb ({e}); raise "
-                         "PIL.Image.MAX_IMAGE_PIXELS if you trust the file") from None
+        raise ValueError(
+            f"{what} refused as a possible decompression bomb ({e}); raise "
+            "PIL.Image.MAX_IMAGE_PIXELS if you trust the file"
+        ) from None
     except (OSError, SyntaxError) as e:  # PIL reports broken images as either
         raise ValueError(f"could not read {what} ({type(e).__name__}: {e})") from None
 
@@ -271,8 +296,10 @@ def check_depth_scale(depth_scale, what: str = "depth_scale"):
     if not (np.isfinite(v) and v > 0):
         raise ValueError(f"{what} must be finite and > 0, got {depth_scale}")
     if v < 1:
-        raise ValueError(f"{what} is stored depth units per metre and divides (Open3D's convention), so it is "
-                         f">= 1; got {depth_scale:g}, the old multiplying convention: pass {1 / v:g} instead")
+        raise ValueError(
+            f"{what} is stored depth units per metre and divides (Open3D's convention), so it is "
+            f">= 1; got {depth_scale:g}, the old multiplying convention: pass {1 / v:g} instead"
+        )
     return v
 
 
@@ -285,14 +312,24 @@ def _range_image(parts, camera, scale):
     camera = stored if camera is None else camera
     if camera is None and points is None:
         raise ValueError("no camera stored in the file; pass camera=PinholeCamera(...) or OrthographicCamera(...)")
-    return RangeImage(depth, fit_pinhole(points) if camera is None else camera,  # pyright: ignore[reportArgumentType]  (points: checked above)
-                      labels, points, colors)
+    return RangeImage(
+        depth,
+        fit_pinhole(points) if camera is None else camera,  # pyright: ignore[reportArgumentType]  (points: checked above)
+        labels,
+        points,
+        colors,
+    )
 
 
 def _write_npz(path, image: RangeImage, **_):
     extra = {k: v for k, v in image.camera.to_dict().items() if k != "model"}
-    extra.update({k: v for k, v in (("labels", image.labels), ("points", image.points_override),
-                                    ("colors", image.colors)) if v is not None})
+    extra.update(
+        {
+            k: v
+            for k, v in (("labels", image.labels), ("points", image.points_override), ("colors", image.colors))
+            if v is not None
+        }
+    )
     with open(path, "wb") as f:
         np.savez_compressed(f, depth=image.depth, **extra)
 
@@ -304,8 +341,10 @@ def _write_png(path, image: RangeImage, depth_scale=1.0, **_):
     q = np.where(image.valid, np.round(np.nan_to_num(image.depth) * depth_scale), 0.0)
     bad = image.valid & ((q < 1) | (q > 65535))
     if bad.any():
-        raise ValueError(f"{int(bad.sum())} depths do not fit 1..65535 at depth_scale={depth_scale} "
-                         f"(depths {np.nanmin(image.depth)}..{np.nanmax(image.depth)})")
+        raise ValueError(
+            f"{int(bad.sum())} depths do not fit 1..65535 at depth_scale={depth_scale} "
+            f"(depths {np.nanmin(image.depth)}..{np.nanmax(image.depth)})"
+        )
     Image.fromarray(q.astype(np.uint16)).save(path, format="PNG")
 
 
@@ -354,8 +393,10 @@ def _npy_points(path):
 
 def _write_ply(path, pts):
     with open(path, "wb") as f:
-        f.write(f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty double x\n"
-                "property double y\nproperty double z\nend_header\n".encode())
+        f.write(
+            f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty double x\n"
+            "property double y\nproperty double z\nend_header\n".encode()
+        )
         f.write(np.ascontiguousarray(pts, "<f8").tobytes())
 
 
@@ -487,8 +528,9 @@ def _intrinsics(path_or_dict):
     return cam, (tuple(int(v) for v in size) if None not in size else None)  # pyright: ignore[reportArgumentType]
 
 
-def read_rgbd(depth, color=None, *, intrinsics=None, camera: Camera | None = None,
-              depth_scale: float = 1000.0) -> RangeImage:
+def read_rgbd(
+    depth, color=None, *, intrinsics=None, camera: Camera | None = None, depth_scale: float = 1000.0
+) -> RangeImage:
     """An RGB-D frame -> `RangeImage` with `colors`: a 16-bit depth PNG, an optional colour image and the
     pinhole intrinsics (a JSON file / dict for `read_intrinsics`, or `camera`).
 
@@ -504,8 +546,10 @@ def read_rgbd(depth, color=None, *, intrinsics=None, camera: Camera | None = Non
     cam, size = _intrinsics(intrinsics) if camera is None else (camera, None)
     image = read_range_image(depth, camera=cam, depth_scale=depth_scale)
     if size is not None and size != image.shape:
-        raise ValueError(f"{depth}: depth image is {image.shape[1]}x{image.shape[0]} (WxH) but the intrinsics "
-                         f"{intrinsics if not isinstance(intrinsics, dict) else ''} are for {size[1]}x{size[0]}")
+        raise ValueError(
+            f"{depth}: depth image is {image.shape[1]}x{image.shape[0]} (WxH) but the intrinsics "
+            f"{intrinsics if not isinstance(intrinsics, dict) else ''} are for {size[1]}x{size[0]}"
+        )
     if color is None:
         return image
     return with_colors(image, color)
@@ -524,8 +568,10 @@ def with_colors(image: RangeImage, color) -> RangeImage:
     except OSError as e:
         raise ValueError(f"{color}: {type(e).__name__}: {e}") from None
     if rgb.shape[:2] != image.shape:
-        raise ValueError(f"{color}: colour image is {rgb.shape[1]}x{rgb.shape[0]} (WxH), the depth is "
-                         f"{image.shape[1]}x{image.shape[0]}")
+        raise ValueError(
+            f"{color}: colour image is {rgb.shape[1]}x{rgb.shape[0]} (WxH), the depth is "
+            f"{image.shape[1]}x{image.shape[0]}"
+        )
     return RangeImage(image.depth, image.camera, image.labels, image.points_override, rgb)
 
 

@@ -35,8 +35,11 @@ def _shade(points: np.ndarray, orthographic: bool) -> np.ndarray:
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         n = n / norm
-        view = np.broadcast_to([0.0, 0.0, 1.0], points.shape) if orthographic else \
-            points / np.linalg.norm(points, axis=-1, keepdims=True)
+        view = (
+            np.broadcast_to([0.0, 0.0, 1.0], points.shape)
+            if orthographic
+            else points / np.linalg.norm(points, axis=-1, keepdims=True)
+        )
         s = np.abs(np.sum(n * view, -1))
     return np.where(np.isfinite(s), s, 0.8)
 
@@ -64,7 +67,7 @@ def _paint(labels, shade, colors, valid=None):
         return rgb
     base = np.asarray(colors, float)[np.maximum(labels - 1, 0)] / 255.0
     lit = base * (0.35 + 0.65 * shade[..., None])
-    edge = np.zeros((H, W), bool)   # thin dark outlines where the front model changes
+    edge = np.zeros((H, W), bool)  # thin dark outlines where the front model changes
     edge[:, 1:] |= labels[:, 1:] != labels[:, :-1]
     edge[1:, :] |= labels[1:, :] != labels[:-1, :]
     lit = np.where((edge & hit)[..., None], lit * 0.45, lit)
@@ -207,16 +210,29 @@ def _history_panels(segmentation):
     final = [p.superquadric for p in segmentation.parts]
     plural = lambda n, w: f"{n} {w}{'s' if n != 1 else ''}"
     if not hist:
-        return [("after the first selection: none", []), ("midway: none", []),
-                (f"final: {plural(len(final), 'part')}", final)]
+        return [
+            ("after the first selection: none", []),
+            ("midway: none", []),
+            (f"final: {plural(len(final), 'part')}", final),
+        ]
     mid = len(hist) // 2
-    return [(f"after the first selection: {plural(len(hist[0]), 'model')}", hist[0]),
-            (f"midway (selection {mid + 1} of {len(hist)}): {plural(len(hist[mid]), 'model')}", hist[mid]),
-            (f"final: {plural(len(final), 'part')}", final)]
+    return [
+        (f"after the first selection: {plural(len(hist[0]), 'model')}", hist[0]),
+        (f"midway (selection {mid + 1} of {len(hist)}): {plural(len(hist[mid]), 'model')}", hist[mid]),
+        (f"final: {plural(len(final), 'part')}", final),
+    ]
 
 
-def figure_sequence(image, segmentation, path=None, *, title: str | None = None, resolution: int = 24,
-                    max_points: int = 6000, dpi: int = 110):
+def figure_sequence(
+    image,
+    segmentation,
+    path=None,
+    *,
+    title: str | None = None,
+    resolution: int = 24,
+    max_points: int = 6000,
+    dpi: int = 110,
+):
     """The paper's figure sequence for one segmentation, as a `matplotlib.figure.Figure`.
 
     Range images (a `RangeImage`): (a) the range image, (b) the back-projected points (x, y, z) coloured
@@ -246,7 +262,7 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
         ax.set_axis_off()
         ax = fig.add_subplot(spec[0, 1], projection="3d")
         pts = image.points
-        if image.colors is not None:   # an RGB-D frame or a coloured PCD: the points in their own colours
+        if image.colors is not None:  # an RGB-D frame or a coloured PCD: the points in their own colours
             shown = _scatter(ax, pts.reshape(-1, 3), image.colors.reshape(-1, 3) / 255.0, max_points=max_points)
         else:
             shown = _scatter(ax, pts.reshape(-1, 3), pts.reshape(-1, 3)[:, 2], cmap=cmap, max_points=max_points)
@@ -261,9 +277,9 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
             ax = fig.add_subplot(spec[(2 + k) // 3, (2 + k) % 3])
             sqs = _superquadrics(models)
             lab, shade = _cast_models(sqs, small.camera, small.shape, resolution)
-            if k == 2:   # the final parts: the colours of labels.png
+            if k == 2:  # the final parts: the colours of labels.png
                 colors = label_colors(n_final)
-            else:        # earlier models: the colour of the final part they overlap most
+            else:  # earlier models: the colour of the final part they overlap most
                 idx = _match_colors(lab, final_labels[::step, ::step], len(sqs), n_final)  # pyright: ignore[reportArgumentType]
                 colors = label_colors(int(idx.max()) + 1)[idx] if idx.size else np.zeros((0, 3))
             rgb = _paint(lab, shade, colors, small.valid)
@@ -272,7 +288,7 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
             ax.set_axis_off()
         ax = fig.add_subplot(spec[1, 2])
         rgb = colorize_labels(final_labels, image.valid)
-        rgb[~image.valid & (final_labels == 0)] = 255   # white where there is no data, as in the other panels
+        rgb[~image.valid & (final_labels == 0)] = 255  # white where there is no data, as in the other panels
         ax.imshow(rgb, interpolation="nearest")
         ax.set_title(f"(f) labels: {n_final} part{'s' if n_final != 1 else ''}")
         ax.set_axis_off()
@@ -287,8 +303,11 @@ def figure_sequence(image, segmentation, path=None, *, title: str | None = None,
         final_labels = np.asarray(segmentation.labels)
         for k, (name, models) in enumerate(panels):
             ax = fig.add_subplot(spec[(1 + k) // 3, (1 + k) % 3], projection="3d")
-            colors = label_colors(n_final) if k == 2 else label_colors(len(models) + n_final)[
-                _match_cloud(models, pts, final_labels, n_final)]
+            colors = (
+                label_colors(n_final)
+                if k == 2
+                else label_colors(len(models) + n_final)[_match_cloud(models, pts, final_labels, n_final)]
+            )
             _scatter(ax, pts, [(_DATA_GREY,) * 3], max_points=max_points, size=0.5)
             v = draw_superquadrics(ax, models, colors, resolution=max(resolution // 2, 8))
             _equal_3d(ax, np.concatenate([shown, v]) if len(v) else shown)
@@ -319,7 +338,7 @@ def _match_cloud(models, pts, final_labels, n_final):
 
     lab = np.zeros(len(pts), np.int32)
     best = np.full(len(pts), np.inf)
-    for i, sq in enumerate(sqs):   # points inside a 10 % enlarged model count as its pixels
+    for i, sq in enumerate(sqs):  # points inside a 10 % enlarged model count as its pixels
         big = type(sq)(sq.size * 1.1, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend)
         inside = np.asarray(contains(big, jnp.asarray(pts, sq.size.dtype)))
         vol = float(np.prod(np.asarray(sq.size)))

@@ -23,8 +23,10 @@ class PinholeCamera:
 
     def __post_init__(self):
         if not (np.isfinite([self.fx, self.fy, self.cx, self.cy]).all() and self.fx > 0 and self.fy > 0):
-            raise ValueError("PinholeCamera: fx, fy must be finite and > 0 and cx, cy finite, got "
-                             f"fx={self.fx}, fy={self.fy}, cx={self.cx}, cy={self.cy}")
+            raise ValueError(
+                "PinholeCamera: fx, fy must be finite and > 0 and cx, cy finite, got "
+                f"fx={self.fx}, fy={self.fy}, cx={self.cx}, cy={self.cy}"
+            )
 
     def rays(self, shape):
         """(H, W, 3) points at depth 1 for an image of `shape` (H, W)."""
@@ -67,8 +69,10 @@ class OrthographicCamera:
         return np.where(np.isfinite(depth)[..., None], pts, np.nan)
 
     def project(self, points):
-        return (np.stack([points[..., 0] / self.pixel_size + self.cx, points[..., 1] / self.pixel_size + self.cy], -1),
-                points[..., 2])
+        return (
+            np.stack([points[..., 0] / self.pixel_size + self.cx, points[..., 1] / self.pixel_size + self.cy], -1),
+            points[..., 2],
+        )
 
     def scaled(self, step: int, r0: int = 0, c0: int = 0) -> OrthographicCamera:
         return OrthographicCamera(self.pixel_size * step, (self.cx - c0) / step, (self.cy - r0) / step)
@@ -139,8 +143,12 @@ class RangeImage:
             if rgb.shape != depth.shape + (3,):
                 raise ValueError(f"RangeImage: colors shape {rgb.shape} != {depth.shape + (3,)}")
             if rgb.dtype != np.uint8:
-                if not np.issubdtype(rgb.dtype, np.number) or not np.isfinite(rgb).all() or \
-                        rgb.min() < 0 or rgb.max() > 255:
+                if (
+                    not np.issubdtype(rgb.dtype, np.number)
+                    or not np.isfinite(rgb).all()
+                    or rgb.min() < 0
+                    or rgb.max() > 255
+                ):
                     raise ValueError(f"RangeImage: colors must be uint8 RGB (0..255), got {rgb.dtype}")
                 rgb = np.round(rgb).astype(np.uint8)
             object.__setattr__(self, "colors", rgb)
@@ -167,20 +175,27 @@ class RangeImage:
         r0, r1, _ = slice(r0, r1).indices(H)
         c0, c1, _ = slice(c0, c1).indices(W)
         if r1 <= r0 or c1 <= c0:
-            raise ValueError(f"RangeImage.crop: non-empty crop needed, got rows {r0}:{r1}, columns {c0}:{c1} "
-                             f"of a {H}x{W} image")
+            raise ValueError(
+                f"RangeImage.crop: non-empty crop needed, got rows {r0}:{r1}, columns {c0}:{c1} of a {H}x{W} image"
+            )
         sl = (slice(r0, r1), slice(c0, c1))
-        return RangeImage(self.depth[sl], self.camera.scaled(1, r0, c0),
-                          None if self.labels is None else self.labels[sl],
-                          None if self.points_override is None else self.points_override[sl],
-                          None if self.colors is None else self.colors[sl])
+        return RangeImage(
+            self.depth[sl],
+            self.camera.scaled(1, r0, c0),
+            None if self.labels is None else self.labels[sl],
+            None if self.points_override is None else self.points_override[sl],
+            None if self.colors is None else self.colors[sl],
+        )
 
     def subsample(self, step: int) -> RangeImage:
         """Every `step`-th row and column (the paper subsampled its dense images), camera rescaled."""
         if step < 1:
             raise ValueError(f"RangeImage.subsample: step must be >= 1, got {step}")
         sl = (slice(0, None, step), slice(0, None, step))
-        return RangeImage(self.depth[sl], self.camera.scaled(step),
-                          None if self.labels is None else self.labels[sl],
-                          None if self.points_override is None else self.points_override[sl],
-                          None if self.colors is None else self.colors[sl])
+        return RangeImage(
+            self.depth[sl],
+            self.camera.scaled(step),
+            None if self.labels is None else self.labels[sl],
+            None if self.points_override is None else self.points_override[sl],
+            None if self.colors is None else self.colors[sl],
+        )

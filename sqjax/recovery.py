@@ -26,8 +26,8 @@ if TYPE_CHECKING:
     from .segment import SegmentOptions
 
 NUM_PARAMS = 11
-_PAIRS = 1 << 15   # (model, point) pairs per call of the distance kernel
-_QUEUE = 3         # distance chunks in flight while one is read back
+_PAIRS = 1 << 15  # (model, point) pairs per call of the distance kernel
+_QUEUE = 3  # distance chunks in flight while one is read back
 
 
 def _pair_chunk(E: int) -> int:
@@ -39,21 +39,21 @@ def _pair_chunk(E: int) -> int:
     return min(n, _PAIRS)
 
 
-_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))   # 8-neighbours (row, col)
+_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))  # 8-neighbours (row, col)
 
 
 @dataclasses.dataclass
 class _Domain:
-    points: np.ndarray            # (P, 3) valid points
-    neighbours: np.ndarray        # (P, k) indices into points, -1 for none
-    seeds: list                   # index arrays, one per seed window
-    index: np.ndarray             # (P,) flat pixel index (images) or point index (clouds)
-    shape: tuple                  # label output shape
-    edges: np.ndarray | None = None   # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
-    views: np.ndarray | None = None   # (P, 3) unit viewing rays (images), None = unknown (clouds)
-    seed_size: int = 0                # points in the smallest seed window (the smallest part seeded)
+    points: np.ndarray  # (P, 3) valid points
+    neighbours: np.ndarray  # (P, k) indices into points, -1 for none
+    seeds: list  # index arrays, one per seed window
+    index: np.ndarray  # (P,) flat pixel index (images) or point index (clouds)
+    shape: tuple  # label output shape
+    edges: np.ndarray | None = None  # images: (8, H, W) bool, pixel joined to its `_OFFSETS[k]` neighbour
+    views: np.ndarray | None = None  # (P, 3) unit viewing rays (images), None = unknown (clouds)
+    seed_size: int = 0  # points in the smallest seed window (the smallest part seeded)
     noise_model: tuple | None = None  # (k, z_ref): local noise / reference noise = (z / z_ref)^k
-    void_rays: np.ndarray | None = None   # (Q, 3) unit viewing rays of the pixels with no return (pinhole images)
+    void_rays: np.ndarray | None = None  # (Q, 3) unit viewing rays of the pixels with no return (pinhole images)
 
     def dilate(self, regions, rings: int):
         """Regions (M, P) bool grown by `rings` steps along the adjacency.
@@ -164,11 +164,20 @@ def _image_domain(image: RangeImage, window, stride, jump_factor, noise, min_see
     edges = np.zeros((len(offs), H * W), bool)
     edges[:, flat] = (nb >= 0).T
     void = None
-    if isinstance(image.camera, PinholeCamera):      # the camera saw no surface along these rays
+    if isinstance(image.camera, PinholeCamera):  # the camera saw no surface along these rays
         rays = image.camera.rays((H, W))[~valid]
         void = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-    return _Domain(P, nb, whole + quadrants, flat, (H, W), edges.reshape(len(offs), H, W), viewing_rays(image, P),
-                   smallest * smallest, void_rays=void)
+    return _Domain(
+        P,
+        nb,
+        whole + quadrants,
+        flat,
+        (H, W),
+        edges.reshape(len(offs), H, W),
+        viewing_rays(image, P),
+        smallest * smallest,
+        void_rays=void,
+    )
 
 
 def _seed_windows(idmap, broken, window: int, stride: int, min_seed: int, subdivide: bool) -> tuple[list, list, int]:
@@ -217,8 +226,9 @@ def viewing_rays(image: RangeImage, P: np.ndarray) -> np.ndarray:
     return P / np.linalg.norm(P, axis=1, keepdims=True)
 
 
-def _cloud_domain(points: np.ndarray, rows: np.ndarray, n_rows: int, nb: np.ndarray, window: int,
-                  min_seed: int) -> _Domain:
+def _cloud_domain(
+    points: np.ndarray, rows: np.ndarray, n_rows: int, nb: np.ndarray, window: int, min_seed: int
+) -> _Domain:
     """Points (P, 3) that are rows `rows` of an (n_rows, 3) input; nb (P, k) their nearest neighbours."""
     P = np.asarray(points, np.float64)
     d = np.linalg.norm(P[np.maximum(nb, 0)] - P[:, None], axis=-1)
@@ -246,7 +256,7 @@ def _knn(P, k, queries=None):
     k_eff = min(k + own, P.shape[0])
     _, idx = cKDTree(P).query(Q, k_eff)
     idx = np.asarray(idx, np.int64).reshape(Q.shape[0], k_eff)
-    if own:   # drop the query itself (or, if duplicates pushed it out, the farthest)
+    if own:  # drop the query itself (or, if duplicates pushed it out, the farthest)
         is_self = idx == np.arange(Q.shape[0])[:, None]
         drop = np.where(is_self.any(1), is_self.argmax(1), k_eff - 1)
         keep = np.ones_like(idx, bool)
@@ -276,9 +286,10 @@ def _pair_distances(theta, points, views, point, enlarge, margin):
     view = jnp.einsum("ei,eij->ej", views[point], rot)
     la, e = theta[:, 0:3], theta[:, 3:5]
     log_f, log_gnorm, normal = log_inside_outside_and_gradient(x, la, e)
-    lf = jnp.where(log_f == 0.0, 1e-30, log_f)            # safe operand: F = 1 gives d = 0 below
-    log_num = jnp.where(lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
-                        jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30))))          # log |1 - 1/F|
+    lf = jnp.where(log_f == 0.0, 1e-30, log_f)  # safe operand: F = 1 gives d = 0 below
+    log_num = jnp.where(
+        lf < 0, -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))), jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30)))
+    )  # log |1 - 1/F|
     d = jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_gnorm, 30.0)))
     big, _, _ = log_inside_outside_and_gradient(x, jnp.log(jnp.exp(la) * enlarge + margin), e)
     return d, big <= 0.0, jnp.sum(normal * view, -1) > 0.2
@@ -300,9 +311,9 @@ def _free_space(theta, points, views, point, margin):
     rot = jax.vmap(so3.exp)(theta[:, 5:8])
     p, v, c = points[point], views[point], theta[:, 8:11]
     radius = jnp.sqrt(jnp.sum(jnp.exp(2.0 * theta[:, 0:3]), -1))
-    reach = jnp.sum((p - c) * v, -1) + radius                 # how far back towards the camera to look
+    reach = jnp.sum((p - c) * v, -1) + radius  # how far back towards the camera to look
     frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
-    back = margin[:, None] + jnp.maximum(reach - margin, 0.0)[:, None] * frac    # (E, S)
+    back = margin[:, None] + jnp.maximum(reach - margin, 0.0)[:, None] * frac  # (E, S)
     q = p[:, None] - back[..., None] * v[:, None]
     x = jnp.einsum("esi,eij->esj", q - c[:, None], rot)
     log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, 0:3], theta[:, None, 3:5])
@@ -316,20 +327,20 @@ def _free_space_box(theta, points, views, point, margin, limit):
     the ray is sampled across its 5 cm. limit (E,); the rest as `_free_space`."""
     rot = jax.vmap(so3.exp)(theta[:, 5:8])
     p, v, c = points[point], views[point], theta[:, 8:11]
-    x0 = jnp.einsum("ei,eij->ej", p - c, rot)               # the point, in the model frame
-    dx = -jnp.einsum("ei,eij->ej", v, rot)                   # back towards the camera, unit
+    x0 = jnp.einsum("ei,eij->ej", p - c, rot)  # the point, in the model frame
+    dx = -jnp.einsum("ei,eij->ej", v, rot)  # back towards the camera, unit
     a = jnp.exp(theta[:, 0:3])
     tiny = jnp.finfo(x0.dtype).tiny
     big = jnp.finfo(x0.dtype).max
     safe = jnp.where(jnp.abs(dx) > tiny, dx, tiny)
     s1, s2 = (-a - x0) / safe, (a - x0) / safe
-    parallel = jnp.abs(dx) <= tiny                            # within the slab for every s, or never
+    parallel = jnp.abs(dx) <= tiny  # within the slab for every s, or never
     s_lo = jnp.where(parallel, jnp.where(jnp.abs(x0) <= a, -big, big), jnp.minimum(s1, s2))
     s_hi = jnp.where(parallel, jnp.where(jnp.abs(x0) <= a, big, -big), jnp.maximum(s1, s2))
     lo = jnp.maximum(jnp.max(s_lo, -1), margin)
     hi = jnp.minimum(jnp.min(s_hi, -1), limit)
     frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
-    back = lo[:, None] + jnp.maximum(hi - lo, 0.0)[:, None] * frac    # (E, S)
+    back = lo[:, None] + jnp.maximum(hi - lo, 0.0)[:, None] * frac  # (E, S)
     x = x0[:, None] + back[..., None] * dx[:, None]
     log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, 0:3], theta[:, None, 3:5])
     return jnp.any(log_f < 0.0, -1) & (hi > lo)
@@ -362,8 +373,11 @@ class _Models:
 
     def concat(self, other: _Models) -> _Models:
         """These hypotheses followed by `other`'s, flags included."""
-        out = _Models(np.concatenate([self.theta, other.theta]), np.concatenate([self.regions, other.regions]),
-                      self.dist + other.dist)
+        out = _Models(
+            np.concatenate([self.theta, other.theta]),
+            np.concatenate([self.regions, other.regions]),
+            self.dist + other.dist,
+        )
         out.active = np.concatenate([self.active, other.active])
         out.loose = np.concatenate([self.loose, other.loose])
         return out
@@ -382,8 +396,8 @@ class _Runner:
         # by it, so that tau and the selection weights count in units of the local noise
         self.scale = None if dom.noise_model is None else noise_scale(dom.points, *dom.noise_model).astype(np.float32)
         self.centre = robust_centre(dom.points) if centre is None else np.asarray(centre, np.float64)
-        self.host_points = dom.points - self.centre   # float32 keeps its precision near the data
-        Pn = -(-dom.points.shape[0] // 4096) * 4096   # a few sizes share one compiled kernel
+        self.host_points = dom.points - self.centre  # float32 keeps its precision near the data
+        Pn = -(-dom.points.shape[0] // 4096) * 4096  # a few sizes share one compiled kernel
         self.points = jnp.asarray(_pad_rows(self.host_points, Pn, np.zeros(3)), dtype)
         views = np.zeros_like(self.host_points) if dom.views is None else dom.views
         self.views = jnp.asarray(_pad_rows(views, Pn, np.zeros(3)), dtype)
@@ -450,7 +464,7 @@ class _Runner:
         pairs_m, pairs_p = [], []
         for i in range(M):
             w = P - c[i]
-            t = np.einsum("pj,pj->p", w, v)                   # > 0: the model's centre is in front of p
+            t = np.einsum("pj,pj->p", w, v)  # > 0: the model's centre is in front of p
             perp2 = np.einsum("pj,pj->p", w, w) - t * t
             cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > self.tau))
             pairs_m.append(np.full(cand.size, i))
@@ -471,9 +485,14 @@ class _Runner:
             m = min(n, model.size - s)
             mi, pts, ray, mg = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
             mi[:m], pts[:m], ray[:m], mg[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], margin[s : s + m]
-            args = (jnp.asarray(theta_d[mi]), jnp.asarray(pts, self.dtype), jnp.asarray(ray, self.dtype),
-                    jnp.arange(n, dtype=jnp.int32), jnp.asarray(mg, self.dtype))
-            if box:   # back to the camera at most (its plane, orthographic)
+            args = (
+                jnp.asarray(theta_d[mi]),
+                jnp.asarray(pts, self.dtype),
+                jnp.asarray(ray, self.dtype),
+                jnp.arange(n, dtype=jnp.int32),
+                jnp.asarray(mg, self.dtype),
+            )
+            if box:  # back to the camera at most (its plane, orthographic)
                 limit = np.einsum("ej,ej->e", pts + self.centre, ray)
                 hit[s : s + m] = np.asarray(_free_space_box(*args, jnp.asarray(limit, self.dtype)))[:m]
             else:
@@ -490,16 +509,16 @@ class _Runner:
         v = self.dom.void_rays
         if v is None or M == 0 or len(v) == 0:
             return out
-        o = -self.centre                                   # the camera, in the runner's frame
+        o = -self.centre  # the camera, in the runner's frame
         c = theta[:, 8:11]
         radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, 0:3]), -1))
         pairs_m, ends, dirs = [], [], []
         for i in range(M):
-            t = (c[i] - o) @ v.T                            # along each ray to the model's centre
+            t = (c[i] - o) @ v.T  # along each ray to the model's centre
             perp2 = np.sum((c[i] - o) ** 2) - t * t
             cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > 0))
             pairs_m.append(np.full(cand.size, i))
-            ends.append(o + (t[cand] + radius[i])[:, None] * v[cand])   # behind the sphere, on the ray
+            ends.append(o + (t[cand] + radius[i])[:, None] * v[cand])  # behind the sphere, on the ray
             dirs.append(v[cand])
         model, end, ray = np.concatenate(pairs_m), np.concatenate(ends), np.concatenate(dirs)
         if model.size == 0:
@@ -528,11 +547,18 @@ class _Runner:
             if r.size > self.opts.max_points:
                 r = r[np.linspace(0, r.size - 1, self.opts.max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
-        size = call_size(K, N)   # one kernel per refit: a long one's last call is full too
+        size = call_size(K, N)  # one kernel per refit: a long one's last call is full too
         rows = np.arange(-(-K // size) * size)
-        rows = np.where(rows < K, rows, 0).reshape(-1, size)   # padding: copies of problem 0, dropped below
-        pending = [fit_padded(jnp.asarray(pts[r], self.dtype), jnp.asarray(msk[r]),
-                              None if theta0 is None else jnp.asarray(theta0[r], self.dtype), opts)[0] for r in rows]
+        rows = np.where(rows < K, rows, 0).reshape(-1, size)  # padding: copies of problem 0, dropped below
+        pending = [
+            fit_padded(
+                jnp.asarray(pts[r], self.dtype),
+                jnp.asarray(msk[r]),
+                None if theta0 is None else jnp.asarray(theta0[r], self.dtype),
+                opts,
+            )[0]
+            for r in rows
+        ]
         theta = np.concatenate([np.asarray(t) for t in pending])[:K].astype(np.float64)
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 
@@ -572,7 +598,7 @@ def _starts(points: np.ndarray, regions: list, origin: np.ndarray | None = None)
         q = points[ids]
         c = q.mean(0)
         _, V = np.linalg.eigh(np.cov((q - c).T))
-        V = V[:, ::-1].copy()                       # largest spread first; z = least
+        V = V[:, ::-1].copy()  # largest spread first; z = least
         V[:, 2] *= np.sign(np.linalg.det(V))
         loc = (q - c) @ V
         lo, hi = loc.min(0), loc.max(0)
@@ -581,7 +607,7 @@ def _starts(points: np.ndarray, regions: list, origin: np.ndarray | None = None)
         h = h.copy()
         h[2] = max(h[2], 0.25 * (h[0] + h[1]))
         R[i], centre[i], half[i] = V, c + V @ ((lo + hi) / 2), h
-        if origin is not None:                      # away from the camera, by the added thickness
+        if origin is not None:  # away from the camera, by the added thickness
             n = V[:, 2] * (1.0 if np.dot(centre[i] - origin, V[:, 2]) >= 0 else -1.0)
             back[i] = n * (h[2] - thin[i, 2])
     w = np.asarray(_log_rotations(jnp.asarray(_pad_rows(R, bucket(K, 32), np.eye(3)))), np.float64)[:K]
@@ -602,7 +628,7 @@ def _fit_best(run: _Runner, regions: list, steps: int, multistart: bool = False)
     best = None
     model, point = _pairs(regions)
     sizes = np.array([r.size for r in regions])
-    origin = -run.centre if run.dom.views is not None else None     # the camera, in the runner's frame
+    origin = -run.centre if run.dom.views is not None else None  # the camera, in the runner's frame
     starts = list(_starts(run.host_points, regions, origin)) + ([None] if multistart else [])
     for th0 in starts:
         theta = run.fit(regions, th0, steps)
@@ -653,7 +679,7 @@ def _seed(run: _Runner, opts: SegmentOptions, seeds: list | None = None):
     dist = []
     for i, ids in enumerate(seeds):
         inl = d[i] < run.tau
-        keep[i] &= inl.mean() >= opts.seed_inlier_fraction      # statistically consistent with the noise
+        keep[i] &= inl.mean() >= opts.seed_inlier_fraction  # statistically consistent with the noise
         regions[i, ids[inl]] = True
         dist.append(d[i][inl])
     models = _Models(theta, regions, dist)
@@ -674,7 +700,7 @@ def free_components(free, neighbours, min_size: int, max_size: int | None = None
         cand = np.where(ok, label_ext[nb], P).min(1)
         new = np.minimum(label, cand)
         new = np.where(free, new, P)
-        new = np.where(free, np.append(new, P)[new], P)          # pointer jumping: labels are indices
+        new = np.where(free, np.append(new, P)[new], P)  # pointer jumping: labels are indices
         if np.array_equal(new, label):
             break
         label = new
@@ -717,11 +743,11 @@ def _grow(run: _Runner, models: _Models, opts: SegmentOptions):
     size = np.bincount(k, minlength=sel.size)
     dist = _split(d[inl], k[inl], sel.size)
     grown[:] = False
-    grown[k[inl], p[inl]] = True                # now the new regions: the grown points within tau
+    grown[k[inl], p[inl]] = True  # now the new regions: the grown points within tau
     m = act[sel]
     good = np.isfinite(new_theta).all(1) & (kept >= opts.keep_fraction * size) & (kept > before[sel])
-    retry = ~good & models.loose[m]             # retry with only the points within tau
-    models.active[m[~good & ~retry]] = False    # fit broke down or no growth: keep the last good state
+    retry = ~good & models.loose[m]  # retry with only the points within tau
+    models.active[m[~good & ~retry]] = False  # fit broke down or no growth: keep the last good state
     models.loose[m[retry]] = False
     models.theta[m[good]], models.regions[m[good]], models.loose[m[good]] = new_theta[good], grown[good], True
     for j in np.flatnonzero(good):
@@ -734,17 +760,18 @@ def _domain(data, opts: SegmentOptions, k: int):
         if not valid.any():
             raise ValueError("segment: the range image has no valid pixel (all depths are NaN, 0 or inf)")
         if valid.sum() < opts.min_seed_points:
-            raise ValueError(f"segment: the range image has {int(valid.sum())} valid pixels; at least "
-                             f"{opts.min_seed_points} are needed for one seed")
+            raise ValueError(
+                f"segment: the range image has {int(valid.sum())} valid pixels; at least "
+                f"{opts.min_seed_points} are needed for one seed"
+            )
         noise = opts.noise if opts.noise is not None else estimate_noise(data)
         tau = opts.threshold if opts.threshold is not None else opts.threshold_factor * noise
         H, W = data.shape
         window = opts.window or int(np.clip(round(min(H, W) / 12), 4, 32))
         window = min(window, H, W)
         stride = opts.stride or max(window // 2, 1)
-        dom = _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points,
-                            opts.subdivide)
-        if opts.noise_exponent:   # else the seeds estimate it (`_seed`), or it is 0
+        dom = _image_domain(data, window, stride, opts.jump_factor, noise, opts.min_seed_points, opts.subdivide)
+        if opts.noise_exponent:  # else the seeds estimate it (`_seed`), or it is 0
             dom.noise_model = (opts.noise_exponent, float(np.median(np.abs(dom.points[:, 2]))))
         return dom, noise, tau
     pts = np.asarray(data, np.float64)

@@ -48,14 +48,36 @@ def _quaternion(R):
     tr = m00 + m11 + m22
     cands = jnp.stack(
         [
-            jnp.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2],
-                       R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
-            jnp.stack([R[..., 2, 1] - R[..., 1, 2], 1 + m00 - m11 - m22,
-                       R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
-            jnp.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0],
-                       1 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1]], -1),
-            jnp.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0],
-                       R[..., 1, 2] + R[..., 2, 1], 1 - m00 - m11 + m22], -1),
+            jnp.stack(
+                [1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+            ),
+            jnp.stack(
+                [
+                    R[..., 2, 1] - R[..., 1, 2],
+                    1 + m00 - m11 - m22,
+                    R[..., 0, 1] + R[..., 1, 0],
+                    R[..., 0, 2] + R[..., 2, 0],
+                ],
+                -1,
+            ),
+            jnp.stack(
+                [
+                    R[..., 0, 2] - R[..., 2, 0],
+                    R[..., 0, 1] + R[..., 1, 0],
+                    1 - m00 + m11 - m22,
+                    R[..., 1, 2] + R[..., 2, 1],
+                ],
+                -1,
+            ),
+            jnp.stack(
+                [
+                    R[..., 1, 0] - R[..., 0, 1],
+                    R[..., 0, 2] + R[..., 2, 0],
+                    R[..., 1, 2] + R[..., 2, 1],
+                    1 - m00 - m11 + m22,
+                ],
+                -1,
+            ),
         ],
         -2,
     )
@@ -78,7 +100,7 @@ def log(R):
     n2 = jnp.sum(v * v, -1)
     small = n2 < _eps(R.dtype)
     n = jnp.sqrt(jnp.where(small, 1.0, n2))
-    ws = jnp.where(small, w, 1.0)               # w ~ 1 on the Taylor branch; never 0 there
+    ws = jnp.where(small, w, 1.0)  # w ~ 1 on the Taylor branch; never 0 there
     taylor = 2.0 / ws - 2.0 * n2 / (3.0 * ws**3)
     scale = jnp.where(small, taylor, 2.0 * jnp.arctan2(n, w) / n)
     return v * scale[..., None]

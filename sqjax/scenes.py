@@ -147,8 +147,17 @@ def _render(parts, meshes, camera, shape, *, noise, dropout, seed, refine=True) 
     return RangeImage(depth.astype(np.float32), camera, labels)
 
 
-def render(parts, camera, shape, *, noise: float = 0.0, dropout: float = 0.0, seed: int = 0,
-           resolution: int = 64, refine: bool = True) -> RangeImage:
+def render(
+    parts,
+    camera,
+    shape,
+    *,
+    noise: float = 0.0,
+    dropout: float = 0.0,
+    seed: int = 0,
+    resolution: int = 64,
+    refine: bool = True,
+) -> RangeImage:
     """Ray-cast a range image of `parts` (list of `Superquadric` and/or `trimesh.Trimesh`, camera frame).
 
     **Arguments:**
@@ -166,8 +175,9 @@ def render(parts, camera, shape, *, noise: float = 0.0, dropout: float = 0.0, se
         raise ValueError("render: no parts to render")
     if not 0.0 <= dropout <= 1.0 or noise < 0:
         raise ValueError(f"render: need noise >= 0 and dropout in [0, 1], got {noise}, {dropout}")
-    return _render(parts, _meshes(parts, resolution), camera, shape, noise=noise, dropout=dropout, seed=seed,
-                   refine=refine)
+    return _render(
+        parts, _meshes(parts, resolution), camera, shape, noise=noise, dropout=dropout, seed=seed, refine=refine
+    )
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -194,27 +204,40 @@ def _rz(a):
 _TABLE_TO_CAMERA = _rx(np.radians(30)) @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) @ _rz(np.radians(35))
 
 
-def _table_part(size, epsilon, centre, rotation=np.eye(3), *,  # noqa: B008  (only read, never written)
-                look_at=(0.0, 0.0, 0.7), distance=5.0):
+def _table_part(
+    size,
+    epsilon,
+    centre,
+    rotation=np.eye(3),  # noqa: B008  (only read, never written)
+    *,
+    look_at=(0.0, 0.0, 0.7),
+    distance=5.0,
+):
     t = _TABLE_TO_CAMERA @ (np.asarray(centre, float) - look_at) + (0.0, 0.0, distance)
     return Superquadric.create(size, epsilon, rotation=_TABLE_TO_CAMERA @ rotation, translation=t)
 
 
 def _paper_parts(name: str) -> list[Superquadric]:
     if name == "sphere_cylinder":  # Figure 1: a sphere and a cylinder standing apart
-        return [_table_part((0.6, 0.6, 0.6), (1.0, 1.0), (-0.95, 0.0, 0.6)),
-                _table_part((0.45, 0.45, 0.8), (0.1, 1.0), (0.95, 0.2, 0.8))]
+        return [
+            _table_part((0.6, 0.6, 0.6), (1.0, 1.0), (-0.95, 0.0, 0.6)),
+            _table_part((0.45, 0.45, 0.8), (0.1, 1.0), (0.95, 0.2, 0.8)),
+        ]
     if name == "two_cylinders":  # Figure 2: two intersecting cylinders, a cross
-        return [_table_part((0.4, 0.4, 1.1), (0.1, 1.0), (0.0, 0.0, 1.1)),
-                _table_part((0.3, 0.3, 1.25), (0.1, 1.0), (0.0, 0.0, 1.3), _ry(np.pi / 2))]
+        return [
+            _table_part((0.4, 0.4, 1.1), (0.1, 1.0), (0.0, 0.0, 1.1)),
+            _table_part((0.3, 0.3, 1.25), (0.1, 1.0), (0.0, 0.0, 1.3), _ry(np.pi / 2)),
+        ]
     if name == "occluded_block":  # Figure 3: a block split in two by a nearer cylinder, and a sphere
         block_c = np.array([-0.2, 0.7, 0.4])
         cam = -_TABLE_TO_CAMERA.T @ (_TABLE_TO_CAMERA @ -np.array([0.0, 0.0, 0.7]) + (0.0, 0.0, 5.0))
         towards = (cam - block_c)[:2] / np.linalg.norm((cam - block_c)[:2])
         cyl_xy = block_c[:2] + 1.1 * towards  # on the line of sight to the block's centre
-        return [_table_part((1.05, 0.45, 0.4), (0.1, 0.1), block_c),
-                _table_part((0.22, 0.22, 1.0), (0.1, 1.0), (*cyl_xy, 1.0)),
-                _table_part((0.45, 0.45, 0.45), (1.0, 1.0), (1.45, 0.3, 0.45))]
+        return [
+            _table_part((1.05, 0.45, 0.4), (0.1, 0.1), block_c),
+            _table_part((0.22, 0.22, 1.0), (0.1, 1.0), (*cyl_xy, 1.0)),
+            _table_part((0.45, 0.45, 0.45), (1.0, 1.0), (1.45, 0.3, 0.45)),
+        ]
     raise ValueError(f"paper_scene: unknown scene {name!r}, expected one of {PAPER_SCENES}")
 
 
@@ -235,9 +258,13 @@ def paper_scene(name: str, *, shape=(120, 160), noise: float = 0.0, seed: int = 
 
 def _random_rotation(rng) -> np.ndarray:
     w, x, y, z = (q := rng.standard_normal(4)) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 class _Body:
@@ -289,8 +316,9 @@ def _place(rng, body: _Body, placed: list[_Body], relation: str, camera, shape) 
     for _ in range(60):
         if not placed or relation == "separate":
             z = rng.uniform(5.5, 6.5) if relation == "occluding" else rng.uniform(4.6, 6.3)
-            c = np.array([rng.uniform(-1, 1) * 0.45 * z * w / camera.fx,
-                          rng.uniform(-1, 1) * 0.45 * z * h / camera.fy, z])
+            c = np.array(
+                [rng.uniform(-1, 1) * 0.45 * z * w / camera.fx, rng.uniform(-1, 1) * 0.45 * z * h / camera.fy, z]
+            )
             if any(np.linalg.norm(c - p.centre) < body.radius + p.radius + 0.05 for p in placed):
                 continue
         else:
@@ -314,8 +342,17 @@ def _place(rng, body: _Body, placed: list[_Body], relation: str, camera, shape) 
     return False
 
 
-def random_scene(seed: int, *, n_parts=(2, 6), shape=(120, 160), noise: float = 0.005, dropout: float = 0.0,
-                 arrangement: str = "mixed", min_pixels: int | None = None, max_tries: int = 200):
+def random_scene(
+    seed: int,
+    *,
+    n_parts=(2, 6),
+    shape=(120, 160),
+    noise: float = 0.005,
+    dropout: float = 0.0,
+    arrangement: str = "mixed",
+    min_pixels: int | None = None,
+    max_tries: int = 200,
+):
     """A seeded random scene: (range image with labels, ground-truth superquadrics, label i + 1 = part i).
 
     **Arguments:**
@@ -355,8 +392,7 @@ def random_scene(seed: int, *, n_parts=(2, 6), shape=(120, 160), noise: float = 
         meshes = _meshes(parts, 64)
         _, labels, _, _ = _cast(meshes, camera, shape)
         if np.bincount(labels, minlength=n + 1)[1:].min() >= min_pixels:
-            image = _render(parts, meshes, camera, shape, noise=noise, dropout=dropout,
-                            seed=int(rng.integers(2**31)))
+            image = _render(parts, meshes, camera, shape, noise=noise, dropout=dropout, seed=int(rng.integers(2**31)))
             return image, parts
     raise RuntimeError(f"random_scene: no scene with every part visible in {max_tries} tries (seed {seed})")
 
@@ -379,8 +415,11 @@ def _object_parts(kind: str, rng) -> list[tuple]:
         leg_e = box if rng.random() < 0.5 else cyl
         top = j(0.05)[0]
         parts = [((w, d, top), box, (0, 0, 2 * h + top), eye)]
-        parts += [((leg, leg, h), leg_e, (sx * (w - 1.5 * leg), sy * (d - 1.5 * leg), h), eye)
-                  for sx in (-1, 1) for sy in (-1, 1)]
+        parts += [
+            ((leg, leg, h), leg_e, (sx * (w - 1.5 * leg), sy * (d - 1.5 * leg), h), eye)
+            for sx in (-1, 1)
+            for sy in (-1, 1)
+        ]
         if kind == "chair":
             back = j(0.32)[0]
             parts.append(((w, top, back), box, (0, -d + top, 2 * h + 2 * top + back), eye))
@@ -391,28 +430,38 @@ def _object_parts(kind: str, rng) -> list[tuple]:
         return [((r, r, h), cyl, (0, 0, h), eye), ((hw, 0.6 * hw, hh), (0.3, 0.3), (r + hw, 0, h), eye)]
     if kind == "lamp":
         rb, hb, rp, hp, rs, hs = j(0.3, 0.04, 0.04, 0.5, 0.3, 0.2)
-        return [((rb, rb, hb), cyl, (0, 0, hb), eye), ((rp, rp, hp), cyl, (0, 0, 2 * hb + hp), eye),
-                ((rs, rs, hs), (0.6, 1.0), (0, 0, 2 * hb + 2 * hp + 0.6 * hs), eye)]
+        return [
+            ((rb, rb, hb), cyl, (0, 0, hb), eye),
+            ((rp, rp, hp), cyl, (0, 0, 2 * hb + hp), eye),
+            ((rs, rs, hs), (0.6, 1.0), (0, 0, 2 * hb + 2 * hp + 0.6 * hs), eye),
+        ]
     if kind == "l_shape":
         a, b, t = j(0.5, 0.45, 0.16)
         return [((a, t, t), box, (0, 0, t), eye), ((t, t, b), box, (a - t, 0, 2 * t + b), eye)]
     if kind == "dumbbell":
         r, lb, rb = j(0.28, 0.42, 0.07)
-        return [((r, r, r), ball, (-lb - 0.7 * r, 0, r), eye), ((r, r, r), ball, (lb + 0.7 * r, 0, r), eye),
-                ((rb, rb, lb + 0.3 * r), cyl, (0, 0, r), _ry(np.pi / 2))]
-    if kind == "arm":   # a base and two cylindric links, bent at the joint
+        return [
+            ((r, r, r), ball, (-lb - 0.7 * r, 0, r), eye),
+            ((r, r, r), ball, (lb + 0.7 * r, 0, r), eye),
+            ((rb, rb, lb + 0.3 * r), cyl, (0, 0, r), _ry(np.pi / 2)),
+        ]
+    if kind == "arm":  # a base and two cylindric links, bent at the joint
         bw, l1, l2, r = j(0.25, 0.34, 0.3, 0.08)
         a1, a2 = rng.uniform(0.3, 0.8), rng.uniform(-1.6, -0.8)
         u1, u2 = np.array([np.sin(a1), 0, np.cos(a1)]), np.array([np.sin(a1 + a2), 0, np.cos(a1 + a2)])
         base = np.array([0, 0, 0.16])
         joint = base + 2 * l1 * u1
-        return [((bw, bw, 0.08), box, (0, 0, 0.08), eye), ((r, r, l1), cyl, base + l1 * u1, _ry(a1)),
-                ((0.8 * r, 0.8 * r, l2), cyl, joint + (l2 - r) * u2, _ry(a1 + a2))]
+        return [
+            ((bw, bw, 0.08), box, (0, 0, 0.08), eye),
+            ((r, r, l1), cyl, base + l1 * u1, _ry(a1)),
+            ((0.8 * r, 0.8 * r, l2), cyl, joint + (l2 - r) * u2, _ry(a1 + a2)),
+        ]
     raise ValueError(f"multipart_scene: unknown object {kind!r}, expected one of {OBJECTS}")
 
 
-def multipart_scene(seed: int, kind: str | None = None, *, shape=(120, 160), noise: float = 0.005,
-                    dropout: float = 0.0):
+def multipart_scene(
+    seed: int, kind: str | None = None, *, shape=(120, 160), noise: float = 0.005, dropout: float = 0.0
+):
     """A seeded multi-part object seen from a random viewpoint: (range image with per-part labels,
     ground-truth superquadrics; label i + 1 = part i).
 
@@ -426,16 +475,26 @@ def multipart_scene(seed: int, kind: str | None = None, *, shape=(120, 160), noi
     rng = np.random.default_rng([seed, 7])
     kind = OBJECTS[int(rng.integers(len(OBJECTS)))] if kind is None else kind
     spec = _object_parts(kind, rng)
-    turn = _rx(np.radians(rng.uniform(15, 50))) @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) \
+    turn = (
+        _rx(np.radians(rng.uniform(15, 50)))
+        @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
         @ _rz(rng.uniform(0, 2 * np.pi))
+    )
     centres = np.array([c for _, _, c, _ in spec], float)
     reach = np.array([np.max(s) for s, _, _, _ in spec])
     mid = 0.5 * ((centres - reach[:, None]).min(0) + (centres + reach[:, None]).max(0))
     radius = float(np.max(np.linalg.norm(centres - mid, axis=1) + reach))
     camera = default_camera(shape)
     distance = radius * camera.fy / (0.4 * shape[0])
-    parts = [Superquadric.create(np.asarray(s, float), e, rotation=turn @ R,
-                                 translation=turn @ (np.asarray(c, float) - mid) + (0.0, 0.0, distance))
-             for s, e, c, R in spec]
-    return render(parts, camera, shape, noise=noise * distance / 5.0, dropout=dropout,
-                  seed=int(rng.integers(2**31))), parts
+    parts = [
+        Superquadric.create(
+            np.asarray(s, float),
+            e,
+            rotation=turn @ R,
+            translation=turn @ (np.asarray(c, float) - mid) + (0.0, 0.0, distance),
+        )
+        for s, e, c, R in spec
+    ]
+    return render(
+        parts, camera, shape, noise=noise * distance / 5.0, dropout=dropout, seed=int(rng.integers(2**31))
+    ), parts

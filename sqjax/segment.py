@@ -165,8 +165,11 @@ class SegmentOptions:
         number("min_seed_points", NUM_PARAMS + 1, integer=True)
         number("window", 1, integer=True, optional=True)
         if self.window is not None and self.window * self.window < self.min_seed_points:
-            bad("window", f"at least {int(np.ceil(np.sqrt(self.min_seed_points)))} (a seed window of "
-                f"window^2 pixels must hold min_seed_points = {self.min_seed_points})")
+            bad(
+                "window",
+                f"at least {int(np.ceil(np.sqrt(self.min_seed_points)))} (a seed window of "
+                f"window^2 pixels must hold min_seed_points = {self.min_seed_points})",
+            )
         number("stride", 1, integer=True, optional=True)
         number("seed_inlier_fraction", 0, 1, lo_open=True)
         number("enlarge", 1)
@@ -233,10 +236,19 @@ class Segmentation:
 
     def to_dict(self) -> dict:
         return {
-            "parts": [{**p.superquadric.to_dict(), "num_points": int(p.num_points),
-                       "num_explained": int(p.num_explained), "error": float(p.error)} for p in self.parts],
-            "noise": float(self.noise), "threshold": float(self.threshold),
-            "timings": self.timings, "stats": self.stats,
+            "parts": [
+                {
+                    **p.superquadric.to_dict(),
+                    "num_points": int(p.num_points),
+                    "num_explained": int(p.num_explained),
+                    "error": float(p.error),
+                }
+                for p in self.parts
+            ],
+            "noise": float(self.noise),
+            "threshold": float(self.threshold),
+            "timings": self.timings,
+            "stats": self.stats,
         }
 
 
@@ -370,9 +382,18 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     models = _seed(run, opts)
     noise, tau = run.noise, run.tau
     weights = opts.weights or SelectionWeights.for_threshold(tau)
-    history, stats = [], {"seeds": len(dom.seeds), "seed_models": len(models.theta), "selections": 0,
-                          "greedy_worse": 0, "growth_steps": 0, "reseeded": 0,
-                          "noise_exponent": dom.noise_model[0] if dom.noise_model else 0.0}
+    history, stats = (
+        [],
+        {
+            "seeds": len(dom.seeds),
+            "seed_models": len(models.theta),
+            "selections": 0,
+            "greedy_worse": 0,
+            "growth_steps": 0,
+            "reseeded": 0,
+            "noise_exponent": dom.noise_model[0] if dom.noise_model else 0.0,
+        },
+    )
 
     def select_(models):
         m, st = _select(run, models, tau, opts, weights)
@@ -394,8 +415,9 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
                 step += 1
                 stats["growth_steps"] += 1
                 if progress is not None:
-                    progress(stats["growth_steps"], int(models.active.sum()), len(models.theta), stage="grow",
-                             round=round_)
+                    progress(
+                        stats["growth_steps"], int(models.active.sum()), len(models.theta), stage="grow", round=round_
+                    )
                 if not models.active.any() or step >= budget:
                     break
             select_(models)
@@ -515,22 +537,26 @@ def _part_volumes(run: _Runner, models: _Models, labels: np.ndarray) -> np.ndarr
         return theta
     regions = [regions[i] for i in use]
     growth = theta[use]
-    origin = -run.centre if run.dom.views is not None else None     # the camera, in the runner's frame
+    origin = -run.centre if run.dom.views is not None else None  # the camera, in the runner's frame
     starts = [growth, *_starts(run.host_points, regions, origin), None]
     cands = [growth] + [run.fit(regions, th0, run.opts.fit_steps, size_bound=True) for th0 in starts]
     model, point = _pairs(regions)
     score = []
-    for i, th in enumerate(cands):      # one candidate at a time: each call's pairs fill its chunks
+    for i, th in enumerate(cands):  # one candidate at a time: each call's pairs fill its chunks
         ok = np.isfinite(th).all(1, keepdims=True)
         cands[i] = th = np.where(ok, th, growth)
         d, _, _ = run.distances(th, model, point)
-        agree = (np.bincount(model, d < run.tau, len(use)) - run.free_space_violations(th, box=True)
-                 - run.void_violations(th, box=True))
+        agree = (
+            np.bincount(model, d < run.tau, len(use))
+            - run.free_space_violations(th, box=True)
+            - run.void_violations(th, box=True)
+        )
         score.append(np.where(ok.ravel(), agree, -np.inf))
     score, stack = np.array(score), np.concatenate(cands)
     C, K = score.shape
-    volume = np.asarray(_world(jnp.asarray(_pad_rows(stack, bucket(C * K, 8), stack[0]), jnp.float32),
-                               jnp.zeros(3, jnp.float32)).volume)[: C * K].reshape(C, K)
+    volume = np.asarray(
+        _world(jnp.asarray(_pad_rows(stack, bucket(C * K, 8), stack[0]), jnp.float32), jnp.zeros(3, jnp.float32)).volume
+    )[: C * K].reshape(C, K)
     # a bounded candidate whenever one agrees within 1 - keep_fraction of the part's points (the
     # tolerance by which growth accepts a step) as well as the growth model: its extent is the data's
     bounded, bvol = score[1:], volume[1:]
@@ -546,7 +572,7 @@ def _parts(run: _Runner, theta: np.ndarray, labels: np.ndarray) -> list:
     i + 1 = model i; every model owns some): each part's region is its labelled points that its model
     explains (eq. 10 distance within tau)."""
     point = np.flatnonzero(labels > 0)
-    point = point[np.argsort(labels[point], kind="stable")]       # grouped by model, in point order
+    point = point[np.argsort(labels[point], kind="stable")]  # grouped by model, in point order
     model = labels[point] - 1
     d, _, _ = run.distances(theta, model, point)
     inl = d < run.tau
@@ -554,8 +580,10 @@ def _parts(run: _Runner, theta: np.ndarray, labels: np.ndarray) -> list:
     count = np.bincount(model, minlength=M)
     error = np.bincount(model[inl], d[inl].astype(np.float64) ** 2, M)
     regions = _split(run.dom.index[point[inl]], model[inl], M)
-    return [Part(sq, regions[i], float(error[i]), int(count[i]), int(regions[i].size))
-            for i, sq in enumerate(_to_world(theta, run.centre))]
+    return [
+        Part(sq, regions[i], float(error[i]), int(count[i]), int(regions[i].size))
+        for i, sq in enumerate(_to_world(theta, run.centre))
+    ]
 
 
 def _propagate(run: _Runner, theta, best, has):
@@ -569,7 +597,7 @@ def _propagate(run: _Runner, theta, best, has):
     ok = nb >= 0
     cols = np.where(ok, nb, 0)
     while True:
-        lab = np.where(ok & has[cols], best[cols], -1)          # (P, k) neighbours' labels
+        lab = np.where(ok & has[cols], best[cols], -1)  # (P, k) neighbours' labels
         front = ~has & (lab >= 0).any(1)
         if not front.any():
             return best, has
@@ -615,12 +643,12 @@ def _label_full(image: RangeImage, step: int, run: _Runner, models: _Models, coa
     flat = np.flatnonzero(image.valid)
     P = image.points.reshape(-1, 3)[flat]
     dom = _Domain(P, np.zeros((P.shape[0], 0), np.int64), [], flat, (H, W), views=viewing_rays(image, P))
-    dom.noise_model = run.dom.noise_model     # the same noise model as the working image's
+    dom.noise_model = run.dom.noise_model  # the same noise model as the working image's
     frun = _Runner(dom, run.opts, run.noise, run.tau, run.dtype, centre=run.centre)
     r, c = np.divmod(flat, W)
     r, c = np.clip(np.rint(r / step).astype(np.int64), 0, h - 1), np.clip(np.rint(c / step).astype(np.int64), 0, w - 1)
     padded = np.pad(coarse, 1)
-    cand = np.stack([padded[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], 1)   # (Pf, 9)
+    cand = np.stack([padded[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], 1)  # (Pf, 9)
     cand = np.unique(np.arange(P.shape[0], dtype=np.int64)[:, None] * (len(models.theta) + 1) + cand)
     point, label = np.divmod(cand, len(models.theta) + 1)
     point, model = point[label > 0], label[label > 0] - 1
@@ -631,7 +659,7 @@ def _label_full(image: RangeImage, step: int, run: _Runner, models: _Models, coa
     np.minimum.at(best, point, score)
     win = inl & (score == best[point])
     owner = np.zeros(P.shape[0], np.int32)
-    owner[point[win]] = model[win] + 1                  # ties: the later model (any one of them)
+    owner[point[win]] = model[win] + 1  # ties: the later model (any one of them)
     if run.opts.propagate:
         # a pixel no model explains takes its coarse pixel's label where that one was propagated
         # (`_propagate`: labelled although no model explains it)

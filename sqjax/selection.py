@@ -42,7 +42,7 @@ def build_q(regions, sq_dist, num_params, weights: SelectionWeights) -> np.ndarr
         sq_dist = [sq_dist[i, regions[i]] for i in range(M)]
     n = regions.sum(1).astype(np.float32)
     xi = np.array([np.sum(d, dtype=np.float64) for d in sq_dist], np.float32).reshape(M)
-    shared = regions.sum(0) >= 2             # only points in two or more regions enter the overlaps
+    shared = regions.sum(0) >= 2  # only points in two or more regions enter the overlaps
     B = regions[:, shared].astype(np.float32)
     column = np.full(regions.shape[1], -1)
     column[shared] = np.arange(B.shape[1])
@@ -50,10 +50,10 @@ def build_q(regions, sq_dist, num_params, weights: SelectionWeights) -> np.ndarr
     for i, d in enumerate(sq_dist):
         c = column[regions[i]]
         D[i, c[c >= 0]] = np.asarray(d)[c >= 0]
-    overlap = B @ B.T                        # |R_i ∩ R_j| (its diagonal is not used)
-    s = D @ B.T                              # s_ij = sum over R_i ∩ R_j of d_i^2
-    xi_ij = np.maximum(s, s.T)               # eq. 4
-    Q = (-weights.k1 * overlap + weights.k2 * xi_ij) / 2.0   # eq. 3
+    overlap = B @ B.T  # |R_i ∩ R_j| (its diagonal is not used)
+    s = D @ B.T  # s_ij = sum over R_i ∩ R_j of d_i^2
+    xi_ij = np.maximum(s, s.T)  # eq. 4
+    Q = (-weights.k1 * overlap + weights.k2 * xi_ij) / 2.0  # eq. 3
     np.fill_diagonal(Q, weights.k1 * n - weights.k2 * xi - weights.k3 * np.asarray(num_params, np.float32))  # eq. 2
     return Q.astype(np.float64)
 
@@ -71,14 +71,14 @@ def select_greedy(Q: np.ndarray) -> np.ndarray:
     """
     M = Q.shape[0]
     m = np.zeros(M, bool)
-    gain = np.diag(Q).copy()                 # gain of adding i to the empty set
+    gain = np.diag(Q).copy()  # gain of adding i to the empty set
     for _ in range(M):
         cand = np.where(m, -np.inf, gain)
         i = int(np.argmax(cand))
         if not cand[i] > 0:
             break
         m[i] = True
-        gain += 2.0 * Q[:, i]                # adding i changes every other gain by 2 c_ji
+        gain += 2.0 * Q[:, i]  # adding i changes every other gain by 2 c_ji
     return m
 
 

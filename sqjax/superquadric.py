@@ -32,9 +32,12 @@ def _log_cap(dtype):
 
 def _check_fields(**fields):
     """Host-side checks of `Superquadric.create`'s concrete arguments; a ValueError names the field."""
+
     def concrete(v):
-        return v is not None and not any(isinstance(x, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue]
-                                         for x in jax.tree.leaves(v))
+        return v is not None and not any(
+            isinstance(x, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue]
+            for x in jax.tree.leaves(v)
+        )
 
     vals = {k: np.asarray(v, np.float64) for k, v in fields.items() if concrete(v)}
     last = {"size": 3, "epsilon": 2, "euler": 3, "translation": 3, "taper": 2, "bend": 2}
@@ -57,8 +60,10 @@ def _check_fields(**fields):
         R = vals["rotation"]
         err = np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)))
         if err > 1e-3 or not np.all(np.linalg.det(R) > 0):
-            raise ValueError(f"Superquadric.create: rotation must be orthonormal with det +1 "
-                             f"(max |R^T R - I| = {err:.3g}, det = {np.linalg.det(R).tolist()})")
+            raise ValueError(
+                f"Superquadric.create: rotation must be orthonormal with det +1 "
+                f"(max |R^T R - I| = {err:.3g}, det = {np.linalg.det(R).tolist()})"
+            )
 
 
 class Superquadric(eqx.Module):
@@ -82,23 +87,40 @@ class Superquadric(eqx.Module):
     bend: jax.Array
 
     @classmethod
-    def create(cls, size, epsilon=(1.0, 1.0), *, rotation=None, euler=None, translation=(0.0, 0.0, 0.0),
-               taper=(0.0, 0.0), bend=(0.0, 0.0), dtype=jnp.float32) -> Superquadric:
+    def create(
+        cls,
+        size,
+        epsilon=(1.0, 1.0),
+        *,
+        rotation=None,
+        euler=None,
+        translation=(0.0, 0.0, 0.0),
+        taper=(0.0, 0.0),
+        bend=(0.0, 0.0),
+        dtype=jnp.float32,
+    ) -> Superquadric:
         """Build from plain values; `euler` = ZYZ angles (phi, theta, psi) as in the paper, or `rotation`.
 
         Concrete values are checked (a `ValueError` names the field): sizes finite and > 0, exponents
         finite and > 0, a rotation orthonormal with det +1 (to 1e-3), everything finite, taper in
         [-1, 1], bending curvature >= 0. Traced values (under jit / grad) are not checked.
         """
-        _check_fields(size=size, epsilon=epsilon, rotation=rotation, euler=euler, translation=translation,
-                      taper=taper, bend=bend)
+        _check_fields(
+            size=size, epsilon=epsilon, rotation=rotation, euler=euler, translation=translation, taper=taper, bend=bend
+        )
         size = jnp.asarray(size, dtype)
         batch = size.shape[:-1]
         if rotation is None:
             rotation = so3.from_euler(jnp.asarray(euler if euler is not None else (0.0, 0.0, 0.0), dtype))
         f = lambda v, n: jnp.broadcast_to(jnp.asarray(v, dtype), batch + (n,))
-        return cls(size, f(epsilon, 2), jnp.broadcast_to(jnp.asarray(rotation, dtype), batch + (3, 3)),
-                   f(translation, 3), f(taper, 2), f(bend, 2))
+        return cls(
+            size,
+            f(epsilon, 2),
+            jnp.broadcast_to(jnp.asarray(rotation, dtype), batch + (3, 3)),
+            f(translation, 3),
+            f(taper, 2),
+            f(bend, 2),
+        )
 
     @property
     def euler(self) -> jax.Array:
@@ -147,8 +169,9 @@ def untaper(x, taper, a3):
 def taper_points(x, taper, a3):
     """Forward tapering of model-frame points (..., 3)."""
     kz = x[..., 2:3] / a3
-    return jnp.concatenate([x[..., 0:1] * (taper[..., 0:1] * kz + 1.0),
-                            x[..., 1:2] * (taper[..., 1:2] * kz + 1.0), x[..., 2:3]], -1)
+    return jnp.concatenate(
+        [x[..., 0:1] * (taper[..., 0:1] * kz + 1.0), x[..., 1:2] * (taper[..., 1:2] * kz + 1.0), x[..., 2:3]], -1
+    )
 
 
 def _atan_ratio(q):
@@ -170,13 +193,13 @@ def unbend(x, bend):
     k, alpha = bend[..., 0:1], bend[..., 1:2]
     ca, sa = jnp.cos(alpha), jnp.sin(alpha)
     X, Y, Z = x[..., 0:1], x[..., 1:2], x[..., 2:3]
-    r = X * ca + Y * sa                       # projection on the bending plane
+    r = X * ca + Y * sa  # projection on the bending plane
     w = 1.0 - k * r
     kz = k * Z
     front = w > 0
     ws = jnp.where(front, w, 1.0)
     q = kz / ws
-    ks = jnp.where(front, 1.0, k)             # k != 0 wherever w <= 0
+    ks = jnp.where(front, 1.0, k)  # k != 0 wherever w <= 0
     z = jnp.where(front, (Z / ws) * _atan_ratio(q), jnp.arctan2(kz, w) / ks)
     den = jnp.sqrt(kz * kz + w * w) + w
     tiny = 1e-12 if x.dtype == jnp.float32 else 1e-30
@@ -196,9 +219,9 @@ def bend_points(x, bend):
     z = x[..., 2:3]
     g = k * z
     one_m_kr = 1.0 - k * r
-    half = jnp.sinc(g / (2 * jnp.pi))                       # sin(g / 2) / (g / 2)
-    dR = one_m_kr * k * z * z * 0.5 * half * half           # (1 - k r)(1 - cos g) / k
-    Z = one_m_kr * z * jnp.sinc(g / jnp.pi)                 # (1 - k r) sin(g) / k
+    half = jnp.sinc(g / (2 * jnp.pi))  # sin(g / 2) / (g / 2)
+    dR = one_m_kr * k * z * z * 0.5 * half * half  # (1 - k r)(1 - cos g) / k
+    Z = one_m_kr * z * jnp.sinc(g / jnp.pi)  # (1 - k r) sin(g) / k
     return jnp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)
 
 
@@ -234,7 +257,7 @@ def _logaddexp_jvp(primals, tangents):
     ta, tb = tangents
     q = jnp.exp(-jnp.abs(a - b))
     out = jnp.maximum(a, b) + jnp.log1p(q)
-    w_big = 1.0 / (1.0 + q)                       # weight of the larger argument, in [1/2, 1]
+    w_big = 1.0 / (1.0 + q)  # weight of the larger argument, in [1/2, 1]
     wa = jnp.where(a >= b, w_big, 1.0 - w_big)
     return out, wa * ta + (1.0 - wa) * tb
 
@@ -395,8 +418,10 @@ def signed_distance(sq: Superquadric, points):
     gradient of log F: finite values and gradients for every finite input."""
     x = (points - sq.translation) @ sq.rotation
     batch = jnp.broadcast_shapes(x.shape[:-1], sq.size.shape[:-1])
-    args = [jnp.broadcast_to(v, batch + v.shape[-1:]).reshape(-1, v.shape[-1])
-            for v in (x, jnp.log(sq.size), sq.epsilon, sq.taper, sq.bend)]
+    args = [
+        jnp.broadcast_to(v, batch + v.shape[-1:]).reshape(-1, v.shape[-1])
+        for v in (x, jnp.log(sq.size), sq.epsilon, sq.taper, sq.bend)
+    ]
     return jax.vmap(deformed_distance)(*args).reshape(batch)
 
 

@@ -157,10 +157,24 @@ def test_segment_png_with_camera_subsample_and_evaluate(capsys, scene, tmp_path)
     write_range_image(png, image, depth_scale=1000)
     cam = ",".join(f"{v:g}" for v in (image.camera.fx, image.camera.fy, image.camera.cx, image.camera.cy))
     out = tmp_path / "res"
-    code, stdout, err = run(capsys, "segment", png, "--camera", cam, "--depth-scale", "1000", "--subsample", "2",
-                            "--no-figure", "--out", out, "-o", "max_steps=30")
+    code, stdout, err = run(
+        capsys,
+        "segment",
+        png,
+        "--camera",
+        cam,
+        "--depth-scale",
+        "1000",
+        "--subsample",
+        "2",
+        "--no-figure",
+        "--out",
+        out,
+        "-o",
+        "max_steps=30",
+    )
     assert code == 0, err
-    assert err == ""                       # no progress bar when stderr is not a terminal
+    assert err == ""  # no progress bar when stderr is not a terminal
     assert "labels.png" in stdout and "figure.png" not in stdout
     doc = json.loads((out / "models.json").read_text())
     # segmented at every 2nd pixel, labelled at the input's size
@@ -226,8 +240,18 @@ def test_fit(capsys, tmp_path, ext):
     assert code == 0, err
     assert "size a1 a2 a3" in stdout and "Euler" in stdout
     doc = json.loads((tmp_path / "fit.json").read_text())
-    assert {"version", "size", "epsilon", "rotation", "euler_zyz", "translation", "cost", "num_points",
-            "converged", "rms_distance"} <= doc.keys()
+    assert {
+        "version",
+        "size",
+        "epsilon",
+        "rotation",
+        "euler_zyz",
+        "translation",
+        "cost",
+        "num_points",
+        "converged",
+        "rms_distance",
+    } <= doc.keys()
     assert doc["num_points"] == 400 and isinstance(doc["cost"], float)
     np.testing.assert_allclose(sorted(doc["size"]), [0.2, 0.3, 0.5], rtol=0.1)
     np.testing.assert_allclose(doc["translation"], [0.1, -0.2, 3.0], atol=0.03)
@@ -301,7 +325,7 @@ def test_progress_bar_only_on_a_terminal():
         bar.close()
     text = tty.getvalue()
     assert "growth step 5/10, 3 of 7 models growing" in text and "round 1/2" in text
-    assert "5/22" in text and "<" in text          # a total (2 rounds x (10 steps + final stage)), an ETA
+    assert "5/22" in text and "<" in text  # a total (2 rounds x (10 steps + final stage)), an ETA
     assert pipe.getvalue() == ""
 
 
@@ -309,14 +333,14 @@ def test_progress_total_shrinks_to_the_truth():
     bar = _Progress(10, _Terminal(), rounds=3)
     bar.start("x")
     assert bar.total == 33
-    for step in range(1, 5):            # round 1 stops after 4 steps: models done
+    for step in range(1, 5):  # round 1 stops after 4 steps: models done
         bar(step, 0 if step == 4 else 2, 5)
     assert bar.in_final and bar.total == 4 + 20 + 3
-    bar(5, 1, 6)                        # growth again: round 2 (reseeded)
+    bar(5, 1, 6)  # growth again: round 2 (reseeded)
     assert bar.round == 1 and bar.bar.n == 6 and bar.total == 4 + 10 + 10 + 3
     bar(6, 0, 6, stage="merge")
     assert bar.total == 4 + 2 + 10 + 3
-    bar(6, 0, 6, stage="select", round=2, total=9)   # what segment() may pass: used as given
+    bar(6, 0, 6, stage="select", round=2, total=9)  # what segment() may pass: used as given
     assert bar.bar.total == 9
     bar.close()
 
@@ -325,8 +349,8 @@ def test_progress_sees_a_reseed_round_by_its_new_models():
     bar = _Progress(10, _Terminal(), rounds=2)
     bar.start("x")
     bar(1, 4, 9)
-    bar(2, 3, 5)        # selection dropped models, and then stopped them all without a call with 0 active
-    bar(3, 2, 8)        # reseeded models joined: round 2
+    bar(2, 3, 5)  # selection dropped models, and then stopped them all without a call with 0 active
+    bar(3, 2, 8)  # reseeded models joined: round 2
     assert bar.round == 1 and bar.round_start == 2 and bar.total == 2 + 10 + 2
     bar.close()
 
@@ -338,6 +362,7 @@ def test_progress_sees_a_reseed_round_by_its_new_models():
 @pytest.fixture
 def no_segment(monkeypatch):
     """segment() must not run: the checks come first."""
+
     def refuse(*a, **k):
         raise AssertionError("segment() ran before the check")
 
@@ -367,6 +392,7 @@ def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no
     code, _, err = run(capsys, "segment", scene, "-o", "noise=-1")
     assert_one_line_error(code, err)
     assert code == 2 and "noise" in err
+
     @dataclasses.dataclass(frozen=True)
     class Typed(segment_module.SegmentOptions):
         def __post_init__(self):
@@ -386,8 +412,17 @@ def test_negative_or_infinite_option_values(capsys, scene, no_segment, option):
 
 
 def test_render_json_unwritable_leaves_no_npz(capsys, tmp_path):
-    code, _, err = run(capsys, "render", "sphere_cylinder", "--shape", "16,16", "--out", tmp_path / "x.npz",
-                       "--json", "/proc/sqjax-test.json")
+    code, _, err = run(
+        capsys,
+        "render",
+        "sphere_cylinder",
+        "--shape",
+        "16,16",
+        "--out",
+        tmp_path / "x.npz",
+        "--json",
+        "/proc/sqjax-test.json",
+    )
     assert_one_line_error(code, err)
     assert "/proc/sqjax-test.json" in err
     assert list(tmp_path.iterdir()) == []
@@ -419,8 +454,11 @@ def test_old_depth_scale_convention_gets_a_hint(capsys, tmp_path):
 
 
 def test_fit_json_unwritable_fails_before_fitting(capsys, tmp_path, monkeypatch):
-    monkeypatch.setattr(importlib.import_module("sqjax.fitting"), "fit",
-                        lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")))
+    monkeypatch.setattr(
+        importlib.import_module("sqjax.fitting"),
+        "fit",
+        lambda *a, **k: (_ for _ in ()).throw(AssertionError("fit ran")),
+    )
     pts = tmp_path / "p.xyz"
     write_points(pts, np.random.default_rng(0).normal(size=(50, 3)))
     code, _, err = run(capsys, "fit", pts, "--json", "/proc/sqjax-test.json")
@@ -457,8 +495,19 @@ def test_segment_rgbd_frame(capsys, scene, tmp_path):
     c = image.camera
     (tmp_path / "cam.json").write_text(json.dumps({"fx": c.fx, "fy": c.fy, "x_offset": c.cx, "y_offset": c.cy}))
     out = tmp_path / "res"
-    code, stdout, err = run(capsys, "segment", tmp_path / "depth.png", "--intrinsics", tmp_path / "cam.json",
-                            "--color", tmp_path / "rgb.png", "--depth-scale", "1000", "--out", out)
+    code, stdout, err = run(
+        capsys,
+        "segment",
+        tmp_path / "depth.png",
+        "--intrinsics",
+        tmp_path / "cam.json",
+        "--color",
+        tmp_path / "rgb.png",
+        "--depth-scale",
+        "1000",
+        "--out",
+        out,
+    )
     assert code == 0, err
     doc = json.loads((out / "models.json").read_text())
     assert doc["settings"]["camera_source"] == "--intrinsics" and doc["camera"]["fx"] == pytest.approx(c.fx)
@@ -471,4 +520,4 @@ def test_errors_name_the_input(capsys, tmp_path):
         code, _, err = run(capsys, cmd, few, *(["--out", tmp_path / "o"] if cmd == "segment" else []))
         assert_one_line_error(code, err)
         assert str(few) in err and "[Errno" not in err
-    assert not (tmp_path / "o").exists()    # the folder made for the results is removed again
+    assert not (tmp_path / "o").exists()  # the folder made for the results is removed again

@@ -127,8 +127,14 @@ def test_volume_iou_batch_matches_single():
 
 
 def test_bounding_box_encloses_deformed_models():
-    sq = Superquadric.create((0.5, 0.3, 0.8), (0.3, 0.6), euler=(0.3, 1.0, -0.4), translation=(1.0, 0.0, 2.0),
-                             taper=(0.5, -0.7), bend=(0.8, 0.6))
+    sq = Superquadric.create(
+        (0.5, 0.3, 0.8),
+        (0.3, 0.6),
+        euler=(0.3, 1.0, -0.4),
+        translation=(1.0, 0.0, 2.0),
+        taper=(0.5, -0.7),
+        bend=(0.8, 0.6),
+    )
     lo, hi = (np.asarray(v) for v in bounding_box(sq))
     pts = surface_grid(sq, 32).reshape(-1, 3)
     assert (pts >= lo - 1e-5).all() and (pts <= hi + 1e-5).all()
@@ -147,8 +153,9 @@ def test_explained_fraction_on_a_rendered_scene():
 def test_parameter_errors_axis_permutation():
     r = np.asarray(BOX.rotation)
     # axes 1 and 2 swapped (and the third flipped, to stay a rotation): the same solid
-    same = Superquadric.create((0.3, 0.5, 0.4), (0.1, 0.1), rotation=r[:, [1, 0, 2]] * [1, 1, -1],
-                               translation=(1.0, 2.0, 3.0))
+    same = Superquadric.create(
+        (0.3, 0.5, 0.4), (0.1, 0.1), rotation=r[:, [1, 0, 2]] * [1, 1, -1], translation=(1.0, 2.0, 3.0)
+    )
     e = parameter_errors(BOX, same, iou_samples=100_000)
     assert e["size_rel_error"] < 1e-6 and e["axes_permuted"] == 0.0 and e["centre_error"] < 1e-6
     assert e["volume_iou"] > 0.99

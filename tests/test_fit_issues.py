@@ -13,7 +13,7 @@ from test_fitting import params, random_problem, volume_iou
 from sqjax import Superquadric, fitting
 from sqjax.fitting import FitOptions, Status, fit
 
-FAST = dict(max_steps=8, multistart=False)   # one start: small kernels for the tests of plumbing
+FAST = dict(max_steps=8, multistart=False)  # one start: small kernels for the tests of plumbing
 
 
 def with_outliers(pts, frac, seed=0):
@@ -71,11 +71,13 @@ def test_non_robust_weights_are_the_mask(outlier_batch):
 
 def _count_compiles(fn):
     from jax._src import dispatch, monitoring
+
     events = []
 
     def listener(name, secs, **kw):
         if name == dispatch.BACKEND_COMPILE_EVENT:
             events.append(secs)
+
     monitoring.register_event_duration_secs_listener(listener)
     try:
         fn()
@@ -89,9 +91,9 @@ def test_one_compile_per_bucket_over_twenty_sizes():
     host-side ops each time. Now every N of one bucket reuses one compiled kernel and nothing else compiles."""
     rng = np.random.default_rng(1)
     _, pts = random_problem(rng, n=64)
-    opts = FitOptions(max_steps=3, multistart=False, robust=True)   # a compile-cache key of its own
-    fit(pts[:33], options=opts)                                        # warm: the (1, 128) kernel
-    fit(pts[:33], options=opts, init=Superquadric.create([1.0, 1.0, 1.0]))   # and the warm-start one
+    opts = FitOptions(max_steps=3, multistart=False, robust=True)  # a compile-cache key of its own
+    fit(pts[:33], options=opts)  # warm: the (1, 128) kernel
+    fit(pts[:33], options=opts, init=Superquadric.create([1.0, 1.0, 1.0]))  # and the warm-start one
     sizes = range(40, 60)
 
     def loop():
@@ -101,6 +103,7 @@ def test_one_compile_per_bucket_over_twenty_sizes():
             assert r.distance.shape == (n,) and r.weight.shape == (n,)
         for n in (41, 57):
             jax.block_until_ready(fit(pts[:n], options=opts, init=Superquadric.create([1.0, 1.0, 1.0])))
+
     assert _count_compiles(loop) == 0
 
 
@@ -113,16 +116,27 @@ def test_far_from_origin_float64():
         ref = fit(pts, dtype=jnp.float64, **FAST)
         far = fit(pts + 1e7, dtype=jnp.float64, **FAST)
         assert np.allclose(np.asarray(far.superquadric.size), np.asarray(ref.superquadric.size), atol=1e-3)
-        assert np.allclose(np.asarray(far.superquadric.translation) - 1e7,
-                           np.asarray(ref.superquadric.translation), atol=1e-3)
+        assert np.allclose(
+            np.asarray(far.superquadric.translation) - 1e7, np.asarray(ref.superquadric.translation), atol=1e-3
+        )
     # float32 output, float64 input far away: the shape is as good as at the origin
     far32, ref32 = fit(pts + 1e7, **FAST), fit(pts, **FAST)
     assert np.allclose(np.asarray(far32.superquadric.size), np.asarray(ref32.superquadric.size), rtol=1e-3)
     # float32 input far away: centred (in float32) before anything else; the shape survives
     p32 = (pts + 1e4).astype(np.float32)
     r = fit(p32, **FAST)
-    assert volume_iou(params(ref32.superquadric), (params(r.superquadric)[0], params(r.superquadric)[1],
-                      params(r.superquadric)[2], params(r.superquadric)[3] - 1e4)) > 0.9
+    assert (
+        volume_iou(
+            params(ref32.superquadric),
+            (
+                params(r.superquadric)[0],
+                params(r.superquadric)[1],
+                params(r.superquadric)[2],
+                params(r.superquadric)[3] - 1e4,
+            ),
+        )
+        > 0.9
+    )
 
 
 def test_nan_row_under_grad_and_jit():
@@ -172,7 +186,7 @@ def test_one_far_row_is_dropped_and_flagged(value):
     """One depth pixel at 1e30 ruined a fit (centring on the mean): median centre, the row dropped."""
     rng = np.random.default_rng(8)
     truth, pts = random_problem(rng, n=100)
-    ref = fit(np.delete(pts, 3, 0), **FAST)          # the same fit without that row
+    ref = fit(np.delete(pts, 3, 0), **FAST)  # the same fit without that row
     bad = pts.copy()
     bad[3] = value
     r = fit(bad, **FAST)
@@ -181,16 +195,23 @@ def test_one_far_row_is_dropped_and_flagged(value):
     assert all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree.leaves(r))
 
 
-@pytest.mark.parametrize("field, value, message", [
-    ("size", [np.nan, 1.0, 1.0], "init.size must be finite"),
-    ("size", [0.0, 1.0, 1.0], "init.size must be > 0"),
-    ("translation", [np.nan, 0.0, 0.0], "init.translation must be finite"),
-])
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("size", [np.nan, 1.0, 1.0], "init.size must be finite"),
+        ("size", [0.0, 1.0, 1.0], "init.size must be > 0"),
+        ("translation", [np.nan, 0.0, 0.0], "init.translation must be finite"),
+    ],
+)
 def test_bad_warm_start_raises_naming_the_field(field, value, message):
     pts = np.random.default_rng(0).normal(size=(50, 3))
     good = Superquadric.create([1.0, 1.0, 1.0])
-    init = Superquadric(**{**{k: getattr(good, k) for k in ("size", "epsilon", "rotation", "translation",
-                                                              "taper", "bend")}, field: jnp.asarray(value)})
+    init = Superquadric(
+        **{
+            **{k: getattr(good, k) for k in ("size", "epsilon", "rotation", "translation", "taper", "bend")},
+            field: jnp.asarray(value),
+        }
+    )
     with pytest.raises(ValueError, match=message):
         fit(pts, init=init, **FAST)
 
@@ -202,6 +223,7 @@ def test_bad_warm_start_under_tracing_is_flagged():
         init = Superquadric.create([1.0, 1.0, 1.0])
         init = Superquadric(size, init.epsilon, init.rotation, init.translation, init.taper, init.bend)
         return fit(pts, init=init, **FAST)
+
     r = jax.jit(run)(jnp.asarray([0.0, 1.0, 1.0]))
     assert int(r.status) & Status.DEGENERATE and not bool(r.converged)
     assert np.all(np.isfinite(np.asarray(r.superquadric.size)))
@@ -228,22 +250,33 @@ def test_segmentation_kernel_unchanged_by_default_options():
     rng = np.random.default_rng(10)
     _, pts = random_problem(rng, n=64)
     opts = FitOptions(max_steps=4, multistart=False)
-    theta, cost, conv, dist = fitting.fit_padded(jnp.asarray(pts[None], jnp.float32), jnp.ones((1, 64), bool),
-                                                 None, opts)
+    theta, cost, conv, dist = fitting.fit_padded(
+        jnp.asarray(pts[None], jnp.float32), jnp.ones((1, 64), bool), None, opts
+    )
     assert theta.shape == (1, 11) and cost.shape == (1,) and dist.shape == (1, 64)
 
 
 # the five thin boxy slabs of issue 14, seen face-on: (sizes, (e1, e2)), the smallest size along z
-SLABS = [((2.0, 1.5, 0.30), (0.5, 0.33)), ((2.4, 1.8, 0.35), (0.4, 0.40)), ((1.5, 1.5, 0.41), (0.3, 0.49)),
-         ((2.2, 1.6, 0.38), (0.6, 0.45)), ((1.8, 1.7, 0.33), (0.35, 0.36))]
+SLABS = [
+    ((2.0, 1.5, 0.30), (0.5, 0.33)),
+    ((2.4, 1.8, 0.35), (0.4, 0.40)),
+    ((1.5, 1.5, 0.41), (0.3, 0.49)),
+    ((2.2, 1.6, 0.38), (0.6, 0.45)),
+    ((1.8, 1.7, 0.33), (0.35, 0.36)),
+]
 
 
 @pytest.fixture(scope="module")
 def slabs():
     from sqjax import sample_surface
+
     truth = [Superquadric.create(size, eps) for size, eps in SLABS]
-    pts = np.stack([sample_surface(sq, 300, seed=k, noise=0.01 * float(np.mean(SLABS[k][0])),
-                                   viewpoint=(0.3, -0.2, 10.0)) for k, sq in enumerate(truth)])
+    pts = np.stack(
+        [
+            sample_surface(sq, 300, seed=k, noise=0.01 * float(np.mean(SLABS[k][0])), viewpoint=(0.3, -0.2, 10.0))
+            for k, sq in enumerate(truth)
+        ]
+    )
     return truth, pts
 
 
@@ -265,6 +298,7 @@ def test_thin_slabs_seen_face_on_keep_their_thickness(slabs):
     sw = fit(pts, residual="size_weighted")
     assert np.median(_thickness(sw.superquadric) / true_t) > 1.4
     from sqjax import residual
+
     for k, sq in enumerate(truth):
         cost_truth = float(np.sum(np.asarray(residual(sq, jnp.asarray(pts[k], jnp.float32))) ** 2))
         assert float(sw.cost[k]) < cost_truth
@@ -278,13 +312,14 @@ def test_distance_residual_is_exact_on_box_faces_and_spheres(kind):
     la = jnp.log(jnp.array([2.0, 1.5, 1.0]) if kind == "box" else jnp.full(3, 1.3))
     e = jnp.array(eps)
     d = jnp.linspace(-0.3, 0.3, 13)
-    if kind == "box":      # along the normal of the z face, near its middle
+    if kind == "box":  # along the normal of the z face, near its middle
         pts = jnp.stack([jnp.full_like(d, 0.2), jnp.full_like(d, -0.1), 1.0 + d])
-    else:                  # along a ray through the centre
+    else:  # along a ray through the centre
         u = jnp.array([1.0, 2.0, -2.0]) / 3.0
         pts = (1.3 + d)[None, :] * u[:, None]
     r = jax.vmap(fitting._residual_point, in_axes=(0, 0, 0, None, None, None, None))(
-        pts[0], pts[1], pts[2], la, e, jnp.zeros(4), False)
+        pts[0], pts[1], pts[2], la, e, jnp.zeros(4), False
+    )
     np.testing.assert_allclose(np.asarray(r), np.asarray(d), atol=2e-3 if kind == "box" else 1e-5)
 
 
@@ -299,18 +334,22 @@ def test_deformations_kept_only_when_they_shorten_the_description():
     fit either carries no deformation at all and equals the plain fit, or beats the plain fit's cost by
     that margin; a clearly tapered truth (the last problem) keeps its tapering."""
     from sqjax import sample_surface
+
     rng = np.random.default_rng(21)
     n = 200
     tapered = Superquadric.create((0.8, 0.8, 2.0), (0.5, 0.5), taper=(0.6, 0.6))
-    pts = np.stack([random_problem(rng, n=n)[1] for _ in range(7)]
-                   + [sample_surface(tapered, n, seed=3, noise=0.005, viewpoint=np.array([10.0, 2.0, 1.0]))])
-    opts = dict(multistart=False, max_steps=12)          # one start: a small kernel to compile
-    plain, deformed = fit(pts, **opts), fit(pts, deform=True, **opts)   # one batch: one compile each
+    pts = np.stack(
+        [random_problem(rng, n=n)[1] for _ in range(7)]
+        + [sample_surface(tapered, n, seed=3, noise=0.005, viewpoint=np.array([10.0, 2.0, 1.0]))]
+    )
+    opts = dict(multistart=False, max_steps=12)  # one start: a small kernel to compile
+    plain, deformed = fit(pts, **opts), fit(pts, deform=True, **opts)  # one batch: one compile each
     for k in range(len(pts)):
         d = np.concatenate([np.asarray(deformed.superquadric.taper[k]), np.asarray(deformed.superquadric.bend[k])])
         if np.all(d == 0.0):
-            np.testing.assert_allclose(np.asarray(deformed.superquadric.size[k]),
-                                       np.asarray(plain.superquadric.size[k]), rtol=1e-4)
+            np.testing.assert_allclose(
+                np.asarray(deformed.superquadric.size[k]), np.asarray(plain.superquadric.size[k]), rtol=1e-4
+            )
         else:
             assert n * np.log(float(plain.cost[k]) / float(deformed.cost[k])) > 4 * np.log(n)
     assert np.any(np.asarray(deformed.superquadric.taper[-1]) != 0.0)
@@ -322,6 +361,7 @@ def test_distance_of_a_deformed_model_is_in_world_units(deformation):
     (median within 5%, 95% within 25%, for points 0.02-0.1 outside; first order): the undeformed
     frame's distance is divided by the stretch of the undeforming map."""
     from sqjax import sample_surface, signed_distance
+
     sq = Superquadric.create((0.6, 0.8, 1.5), (0.6, 0.8), **deformation)
     dense = sample_surface(sq, 60_000, seed=1)
     rng = np.random.default_rng(2)

@@ -22,9 +22,13 @@ def random_rotation(rng):
     """Uniform random rotation matrix (from a normalised Gaussian quaternion)."""
     q = rng.standard_normal(4)
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def random_problem(rng, n=N_POINTS, noise=0.01):
@@ -73,9 +77,13 @@ def matched_axes(R_true, R_fit):
 G_ROT = np.asarray(so3.exp(jnp.array([0.7, -1.9, 0.4])), float)
 G_SHIFT = np.array([3.0, -2.0, 5.0])
 G_SCALE = 2.5
-TRANSFORMS = [("rotate", lambda p: p @ G_ROT.T), ("translate", lambda p: p + G_SHIFT),
-              ("scale", lambda p: G_SCALE * p), ("all", lambda p: G_SCALE * p @ G_ROT.T + G_SHIFT)]
-EQUI = 3   # problems per transform: 20 + 4 * 3 = 32 problems in the batch
+TRANSFORMS = [
+    ("rotate", lambda p: p @ G_ROT.T),
+    ("translate", lambda p: p + G_SHIFT),
+    ("scale", lambda p: G_SCALE * p),
+    ("all", lambda p: G_SCALE * p @ G_ROT.T + G_SHIFT),
+]
+EQUI = 3  # problems per transform: 20 + 4 * 3 = 32 problems in the batch
 
 
 @pytest.fixture(scope="module")
@@ -118,7 +126,7 @@ def test_recovery_one_view_noisy(batch):
         fsize, feps, fR, ft = params(r.superquadric, k)
         perm = matched_axes(R, fR)
         size_err.append(np.abs(fsize[list(perm)] - size) / size)
-        if perm[2] == 2:   # same axis as z: the exponents keep their meaning
+        if perm[2] == 2:  # same axis as z: the exponents keep their meaning
             eps_err.append(np.abs(feps - eps))
         centre_err.append(np.linalg.norm(ft - t) / size.max())
     size_err, centre_err = np.concatenate(size_err), np.array(centre_err)
@@ -134,10 +142,10 @@ def test_distances_and_cost_consistent(batch):
     _, pts, _, r = batch
     d = np.asarray(r.distance[:N_RECOVERY])
     scale = np.asarray(r.superquadric.size[:N_RECOVERY]).mean(-1, keepdims=True)
-    assert np.median(d / scale) < 0.02          # noise is 1% of the size
+    assert np.median(d / scale) < 0.02  # noise is 1% of the size
     models = jax.tree.map(lambda v: v[:N_RECOVERY], r.superquadric)
     f = jax.jit(jax.vmap(signed_distance))(models, jnp.asarray(pts, jnp.float32))
-    w = np.asarray(r.weight[:N_RECOVERY])              # weights (all 1 without robust): cost = sum w r^2
+    w = np.asarray(r.weight[:N_RECOVERY])  # weights (all 1 without robust): cost = sum w r^2
     assert np.allclose(np.sum(w * np.asarray(f) ** 2, -1), np.asarray(r.cost[:N_RECOVERY]), rtol=1e-3)
     assert np.median(w) > 0.9
 
@@ -156,23 +164,23 @@ def test_equivariance(batch, which):
         expect = (scale * size, eps, rot @ R, scale * rot @ t + shift)
         got = params(r.superquadric, k)
         assert volume_iou(expect, got) > 0.98, (name, i)
-        assert float(r.cost[k]) == pytest.approx(scale**2 * float(r.cost[i]), rel=2e-3)   # r is a length
+        assert float(r.cost[k]) == pytest.approx(scale**2 * float(r.cost[i]), rel=2e-3)  # r is a length
 
 
 def test_padding_masking_and_nan_rows_change_nothing(batch):
     _, pts, allpts, r = batch
     rng = np.random.default_rng(5)
-    K, extra = len(allpts), 56                    # 200 + 56 = 256: the same bucket, the same compiled kernel
+    K, extra = len(allpts), 56  # 200 + 56 = 256: the same bucket, the same compiled kernel
     big = np.zeros((K, N_POINTS + extra, 3))
     mask = np.zeros((K, N_POINTS + extra), bool)
     for k in range(K):
         slots = np.sort(rng.choice(N_POINTS + extra, N_POINTS, replace=False))
-        big[k] = rng.uniform(-50, 50, big[k].shape)         # garbage everywhere ...
-        big[k, slots] = allpts[k]                            # ... but at the valid slots, in order
+        big[k] = rng.uniform(-50, 50, big[k].shape)  # garbage everywhere ...
+        big[k, slots] = allpts[k]  # ... but at the valid slots, in order
         mask[k, slots] = True
         nan_rows = rng.choice(np.flatnonzero(~mask[k]), 20, replace=False)
-        big[k, nan_rows] = np.nan                            # some rows missing altogether
-        mask[k, nan_rows] = rng.random(20) < 0.5             # (a NaN row counts as masked even if marked valid)
+        big[k, nan_rows] = np.nan  # some rows missing altogether
+        mask[k, nan_rows] = rng.random(20) < 0.5  # (a NaN row counts as masked even if marked valid)
     r2 = fit(big, mask)
     assert np.allclose(np.asarray(r2.cost), np.asarray(r.cost), rtol=1e-3)
     for k in range(N_RECOVERY):
@@ -192,8 +200,12 @@ def test_warm_start_from_truth_stays(batch):
         sq = Superquadric.create(size, eps, rotation=R, translation=t)
         view = t + np.array([9.0, 3.0, 2.0])
         clean.append(sample_surface(sq, N_POINTS, seed=int(rng.integers(1000)), viewpoint=view))
-    init = Superquadric.create(np.stack([m[0] for m in truth]), np.stack([m[1] for m in truth]),
-                               rotation=np.stack([m[2] for m in truth]), translation=np.stack([m[3] for m in truth]))
+    init = Superquadric.create(
+        np.stack([m[0] for m in truth]),
+        np.stack([m[1] for m in truth]),
+        rotation=np.stack([m[2] for m in truth]),
+        translation=np.stack([m[3] for m in truth]),
+    )
     r = fit(np.stack(clean), init=init)
     size, eps, R, t = params(r.superquadric)
     assert np.allclose(size, np.asarray(init.size), rtol=2e-3)
@@ -213,20 +225,23 @@ def test_float64_path(batch):
             assert float(r.cost[k]) == pytest.approx(float(r32.cost[k]), rel=1e-2)
 
 
-@pytest.mark.parametrize("points, kwargs, message", [
-    (np.zeros((50, 2)), {}, "shape"),
-    (np.zeros((2, 50, 3, 1)), {}, "shape"),
-    (np.zeros((0, 3)), {}, "empty"),
-    (np.zeros((3, 0, 3)), {}, "empty"),
-    (np.random.default_rng(0).normal(size=(MIN_POINTS - 1, 3)), {}, "too few"),
-    (np.full((50, 3), np.nan), {}, "too few"),
-    (np.random.default_rng(0).normal(size=(50, 3)), {"mask": np.zeros(50, bool)}, "too few"),
-    (np.random.default_rng(0).normal(size=(50, 3)), {"mask": np.ones(49, bool)}, "mask shape"),
-    (np.random.default_rng(0).normal(size=(2, 50, 3)), {"mask": np.ones((50,), bool)}, "mask shape"),
-    (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.float64}, "x64"),
-    (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.int32}, "dtype"),
-    (np.array([["a", "b", "c"]] * 20), {}, "numeric"),
-])
+@pytest.mark.parametrize(
+    "points, kwargs, message",
+    [
+        (np.zeros((50, 2)), {}, "shape"),
+        (np.zeros((2, 50, 3, 1)), {}, "shape"),
+        (np.zeros((0, 3)), {}, "empty"),
+        (np.zeros((3, 0, 3)), {}, "empty"),
+        (np.random.default_rng(0).normal(size=(MIN_POINTS - 1, 3)), {}, "too few"),
+        (np.full((50, 3), np.nan), {}, "too few"),
+        (np.random.default_rng(0).normal(size=(50, 3)), {"mask": np.zeros(50, bool)}, "too few"),
+        (np.random.default_rng(0).normal(size=(50, 3)), {"mask": np.ones(49, bool)}, "mask shape"),
+        (np.random.default_rng(0).normal(size=(2, 50, 3)), {"mask": np.ones((50,), bool)}, "mask shape"),
+        (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.float64}, "x64"),
+        (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.int32}, "dtype"),
+        (np.array([["a", "b", "c"]] * 20), {}, "numeric"),
+    ],
+)
 def test_bad_input_raises_value_error(points, kwargs, message):
     with pytest.raises(ValueError, match=message):
         fit(points, **kwargs)

@@ -67,9 +67,11 @@ def make_image(h=24, w=32, labels=True, camera=CAM, seed=0):
 
 def pcd_header(fields, sizes, types, w, h, data, counts=None):
     counts = counts or [1] * len(fields)
-    return (f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {' '.join(fields)}\n"
-            f"SIZE {' '.join(map(str, sizes))}\nTYPE {' '.join(types)}\nCOUNT {' '.join(map(str, counts))}\n"
-            f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {w * h}\nDATA {data}\n").encode()
+    return (
+        f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {' '.join(fields)}\n"
+        f"SIZE {' '.join(map(str, sizes))}\nTYPE {' '.join(types)}\nCOUNT {' '.join(map(str, counts))}\n"
+        f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {w * h}\nDATA {data}\n"
+    ).encode()
 
 
 def compressed_pcd(xyz, label, w, h, compress=lzf_compress_literals):
@@ -157,7 +159,7 @@ def test_pcd_round_trip(tmp_path, data):
 def test_pcd_without_labels_and_scale(tmp_path):
     img = make_image(labels=False)
     write_range_image(tmp_path / "a.pcd", img)
-    back = read_range_image(tmp_path / "a.pcd", depth_scale=1000.0)   # Open3D: units per metre, divides
+    back = read_range_image(tmp_path / "a.pcd", depth_scale=1000.0)  # Open3D: units per metre, divides
     assert back.labels is None
     np.testing.assert_allclose(back.depth, img.depth / 1000, rtol=1e-6, equal_nan=True)
     assert back.camera.fx == pytest.approx(CAM.fx, abs=1e-3)  # scaling xyz keeps the intrinsics
@@ -233,19 +235,26 @@ def test_fit_pinhole_needs_points():
 
 # ---------------------------------------------------------------------------------------- real data
 MOSD = {  # file: (required labels, allowed labels) from mosd/README.md
-    **{f: ({0, 1, 20, 30}, {0, 1, 20, 30, 31}) for f in
-       ("learn/learn0", "test/test0", "test/test5", "test/test10", "learn/learn25", "test/test24")},
+    **{
+        f: ({0, 1, 20, 30}, {0, 1, 20, 30, 31})
+        for f in ("learn/learn0", "test/test0", "test/test5", "test/test10", "learn/learn25", "test/test24")
+    },
     **{f: ({0, 1, 20, 30}, {0, 1, 20, 30, 40}) for f in ("learn/learn17", "test/test16", "test/test20")},
-    **{f: ({0, 1, 20}, {0, *range(1, 10), *range(20, 62)}) for f in
-       ("learn/learn33", "test/test31", "test/test35", "test/test40")},
+    **{
+        f: ({0, 1, 20}, {0, *range(1, 10), *range(20, 62)})
+        for f in ("learn/learn33", "test/test31", "test/test35", "test/test40")
+    },
     "test/test44": ({0, 1, 20}, {0, *range(1, 10), *range(20, 61)}),
 }
 
 
 def test_mosd_listing_is_complete():
     """The clouds present are those the folder's SHA256SUMS lists (and include the ones checked below)."""
-    listed = {line.split()[-1].lstrip("*").removeprefix("./").removesuffix(".pcd")
-              for line in data_path("mosd", "SHA256SUMS").read_text().splitlines() if line.strip().endswith(".pcd")}
+    listed = {
+        line.split()[-1].lstrip("*").removeprefix("./").removesuffix(".pcd")
+        for line in data_path("mosd", "SHA256SUMS").read_text().splitlines()
+        if line.strip().endswith(".pcd")
+    }
     present = {f"{p.parent.name}/{p.stem}" for p in data_path("mosd").glob("*/*.pcd")}
     assert present == listed and set(MOSD) <= present
 
@@ -269,11 +278,14 @@ def test_mosd_as_points():
     assert pts.shape == (172274, 3) and np.isfinite(pts).all() and lab.min() >= 1
 
 
-@pytest.mark.parametrize("name,intrinsics", [
-    ("milk_cartoon_all_small_clorox.pcd", (525, 525, 319.5, 239.5)),
-    ("grabber_frame_20121214T142255.814212.pcd", (525, 525, 320, 240)),
-    ("table_scene_mug_stereo_textured.pcd", (964.4, 964.4, 319.8, 223.4)),
-])
+@pytest.mark.parametrize(
+    "name,intrinsics",
+    [
+        ("milk_cartoon_all_small_clorox.pcd", (525, 525, 319.5, 239.5)),
+        ("grabber_frame_20121214T142255.814212.pcd", (525, 525, 320, 240)),
+        ("table_scene_mug_stereo_textured.pcd", (964.4, 964.4, 319.8, 223.4)),
+    ],
+)
 def test_pcl_test_clouds(name, intrinsics):
     img = read_range_image(data_path("pcl_test_clouds", name))
     assert img.shape == (480, 640) and img.labels is None and 0.5 < img.valid.mean() < 1
@@ -294,13 +306,16 @@ def test_bobkov_labelled_points(name, n, nlabels):  # binary and ascii PCDs
     assert pts.shape == (n, 3) and len(np.unique(lab)) == nlabels and 0.45 < (lab == 0).mean() < 0.5
 
 
-@pytest.mark.parametrize("folder,name,n", [
-    ("robotology_find_superquadric", "box.txt", 1546),
-    ("robotology_find_superquadric", "cylinder.txt", 3077),
-    ("robotology_superquadric_lib", "example-drill.txt", 1432),  # 7 columns, trailing blanks
-    ("pyvista_examples", "ant.ply", 486),
-    ("ems_superquadric_examples", "multi_superquadrics/cat.ply", 6114),
-])
+@pytest.mark.parametrize(
+    "folder,name,n",
+    [
+        ("robotology_find_superquadric", "box.txt", 1546),
+        ("robotology_find_superquadric", "cylinder.txt", 3077),
+        ("robotology_superquadric_lib", "example-drill.txt", 1432),  # 7 columns, trailing blanks
+        ("pyvista_examples", "ant.ply", 486),
+        ("ems_superquadric_examples", "multi_superquadrics/cat.ply", 6114),
+    ],
+)
 def test_real_point_files(folder, name, n):
     pts = read_points(data_path(folder, name))
     assert pts.shape == (n, 3) and np.isfinite(pts).all() and np.ptp(pts, 0).max() > 0
@@ -373,8 +388,14 @@ def test_corrupt_files(tmp_path, name):
 
 
 def test_corrupt_file_messages(tmp_path):
-    cases = {"truncated_binary.pcd": "truncated", "lzf_bad_ref.pcd": "LZF stream corrupt", "points.pcd": "POINTS 5",
-             "short_ascii.pcd": r"shape \(3, 3\)", "no_xyz.pcd": "no x y z", "bad.npy": "not a NumPy"}
+    cases = {
+        "truncated_binary.pcd": "truncated",
+        "lzf_bad_ref.pcd": "LZF stream corrupt",
+        "points.pcd": "POINTS 5",
+        "short_ascii.pcd": r"shape \(3, 3\)",
+        "no_xyz.pcd": "no x y z",
+        "bad.npy": "not a NumPy",
+    }
     for name, msg in cases.items():
         (tmp_path / name).write_bytes(CORRUPT[name])
         with pytest.raises(ValueError, match=msg):
@@ -405,9 +426,15 @@ def test_bad_arrays(tmp_path):
     from PIL import Image
 
     Image.new("RGB", (4, 4)).save(tmp_path / "rgb.png")
-    cases = [("cube.npy", "numeric \\(H, W\\)"), ("nodepth.npz", "no 'depth'"), ("halfcam.npz", "incomplete camera"),
-             ("badcam.npz", "fx, fy must be finite"), ("labels.npz", "labels shape"), ("obj.npy", "pickled"),
-             ("rgb.png", "not a 16-bit")]
+    cases = [
+        ("cube.npy", "numeric \\(H, W\\)"),
+        ("nodepth.npz", "no 'depth'"),
+        ("halfcam.npz", "incomplete camera"),
+        ("badcam.npz", "fx, fy must be finite"),
+        ("labels.npz", "labels shape"),
+        ("obj.npy", "pickled"),
+        ("rgb.png", "not a 16-bit"),
+    ]
     for name, msg in cases:
         with pytest.raises(ValueError, match=f"{name}.*{msg}"):
             read_range_image(tmp_path / name, camera=None if name.endswith(".npz") else CAM)

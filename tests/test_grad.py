@@ -9,7 +9,7 @@ from sqjax import Superquadric, sample_surface
 from sqjax.fitting import FitOptions, fit
 
 TRUTH = dict(size=(1.0, 0.7, 1.3), epsilon=(0.6, 1.3), euler=(0.3, 1.1, -0.8), translation=(0.2, -0.1, 0.4))
-TIGHT = FitOptions(max_steps=40, multistart=False)   # from a warm start: converged to rounding in float64
+TIGHT = FitOptions(max_steps=40, multistart=False)  # from a warm start: converged to rounding in float64
 
 
 def _points(n=60, seed=0, noise=0.02):
@@ -39,7 +39,7 @@ def test_jvp_matches_finite_differences_of_refits(x64):
     rng = np.random.default_rng(1)
     fitted = _fitted_jit
     theta = np.asarray(fitted(p))
-    assert np.all(theta[6:] > 0.15) and np.all(theta[6:] < 1.85)    # exponents inside the bounds
+    assert np.all(theta[6:] > 0.15) and np.all(theta[6:] < 1.85)  # exponents inside the bounds
     h = 1e-5
     for _ in range(2):
         v = jnp.asarray(rng.standard_normal(p.shape))
@@ -54,8 +54,8 @@ def test_reverse_mode_matches_forward_mode(x64):
     rng = np.random.default_rng(3)
     w = jnp.asarray(rng.standard_normal(8))
     v = jnp.asarray(rng.standard_normal(p.shape))
-    grad = jax.jit(jax.grad(lambda q: jnp.dot(w, _fitted(q))))(p)          # reverse: one VJP
-    _, tangent = _jvp_jit(p, v)                                            # forward: one JVP
+    grad = jax.jit(jax.grad(lambda q: jnp.dot(w, _fitted(q))))(p)  # reverse: one VJP
+    _, tangent = _jvp_jit(p, v)  # forward: one JVP
     assert float(jnp.sum(grad * v)) == pytest.approx(float(jnp.dot(w, tangent)), rel=1e-8)
 
 

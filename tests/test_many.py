@@ -62,10 +62,10 @@ def by_name(results):
 def test_corrupt_file_reported_others_finished(serial, scenes, cache_dir, tmp_path):
     out, results = serial
     res = by_name(results)
-    assert [r.name for r in results] == ["corrupt", "scene0", "scene1"]   # input order
+    assert [r.name for r in results] == ["corrupt", "scene0", "scene1"]  # input order
     bad = res["corrupt"]
     assert bad.status == "failed" and bad.segmentation is None
-    assert str(scenes[0] / "corrupt.npz") in bad.error          # the error names the file
+    assert str(scenes[0] / "corrupt.npz") in bad.error  # the error names the file
     assert not (out / "corrupt" / MARKER).exists()
     for name in ("scene0", "scene1"):
         r = res[name]
@@ -85,7 +85,7 @@ def test_corrupt_file_reported_others_finished(serial, scenes, cache_dir, tmp_pa
 
 
 def test_compilation_cache_filled(serial, cache_dir):
-    assert len(list(cache_dir.iterdir())) > 10     # what the Dask workers will load instead of compiling
+    assert len(list(cache_dir.iterdir())) > 10  # what the Dask workers will load instead of compiling
 
 
 def test_summary_files(serial):
@@ -115,10 +115,10 @@ def test_resume_skips_finished_scenes(serial, scenes, monkeypatch):
 
     monkeypatch.setattr(module, "segment", counting)
     again = by_name(segment_many(paths, out, progress=False))
-    assert calls == []                                         # nothing redone
+    assert calls == []  # nothing redone
     assert again["scene0"].status == again["scene1"].status == "resumed"
     assert again["scene0"].row["parts"] == by_name(first)["scene0"].row["parts"]
-    assert again["corrupt"].status == "failed"                 # failures are retried, and fail again
+    assert again["corrupt"].status == "failed"  # failures are retried, and fail again
     # a scene without its marker (an interrupted write) is redone, the other one is not
     (out / "scene1" / MARKER).unlink()
     third = by_name(segment_many(paths, out, progress=False))
@@ -134,7 +134,7 @@ def test_expand_inputs(scenes, tmp_path):
     d, paths = scenes
     assert expand_inputs([d]) == paths
     assert expand_inputs([str(d / "scene*.npz")]) == paths[1:]
-    assert expand_inputs([paths[1], d]) == [paths[1], paths[0], paths[2]]   # duplicates dropped, order kept
+    assert expand_inputs([paths[1], d]) == [paths[1], paths[0], paths[2]]  # duplicates dropped, order kept
     with pytest.raises(FileNotFoundError, match="nothing-here"):
         expand_inputs([tmp_path / "nothing-here*.npz"])
 
@@ -143,25 +143,37 @@ def test_cli_folder(scenes, serial, tmp_path, capsys):
     d, _ = scenes
     code = main(["segment", str(d), "--out", str(tmp_path / "o"), "--no-figure"])
     out, err = capsys.readouterr()
-    assert code == 1                                           # one input failed ...
+    assert code == 1  # one input failed ...
     assert err.count("sqjax: error: ") == 1 and "corrupt.npz" in err
     assert (tmp_path / "o" / "summary.csv").is_file() and "scene0" in out
-    for name in ("scene0", "scene1"):                         # ... the others are written
-        np.testing.assert_array_equal(np.load(tmp_path / "o" / name / "labels.npy"),
-                                      by_name(serial[1])[name].segmentation.labels)
+    for name in ("scene0", "scene1"):  # ... the others are written
+        np.testing.assert_array_equal(
+            np.load(tmp_path / "o" / name / "labels.npy"), by_name(serial[1])[name].segmentation.labels
+        )
 
 
 def _params(seg):
-    return [np.concatenate([np.ravel(np.asarray(v)) for v in (p.superquadric.size, p.superquadric.epsilon,
-                                                                p.superquadric.rotation, p.superquadric.translation)])
-            for p in seg.parts]
+    return [
+        np.concatenate(
+            [
+                np.ravel(np.asarray(v))
+                for v in (
+                    p.superquadric.size,
+                    p.superquadric.epsilon,
+                    p.superquadric.rotation,
+                    p.superquadric.translation,
+                )
+            ]
+        )
+        for p in seg.parts
+    ]
 
 
 def test_dask_equals_serial(serial, scenes, cache_dir, tmp_path):
     pytest.importorskip("distributed", reason="Dask distributed is not installed (pip install 'sqjax[dask]')")
     _, paths = scenes
     image = sqjax.read_range_image(paths[2])
-    inputs = [*paths, ("scene1_array", image)]                 # paths and an array
+    inputs = [*paths, ("scene1_array", image)]  # paths and an array
     # a LocalCluster of two single-threaded worker processes, started and closed by segment_many; the
     # workers load the kernels this process compiled from the persistent cache
     results = segment_many(inputs, tmp_path / "dask", workers=2, cache_dir=cache_dir, progress=False)

@@ -118,10 +118,17 @@ def test_crop_negative_start():
     _check_same_pixels(img.crop(-5, 30, 0, 40), img, np.arange(25, 30), np.arange(40))
 
 
-@pytest.mark.parametrize("kwargs", [
-    dict(fx=0, fy=1, cx=0, cy=0), dict(fx=1, fy=-2, cx=0, cy=0), dict(fx=np.nan, fy=1, cx=0, cy=0),
-    dict(fx=np.inf, fy=1, cx=0, cy=0), dict(fx=1, fy=1, cx=np.nan, cy=0), dict(fx=1, fy=1, cx=0, cy=np.inf),
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(fx=0, fy=1, cx=0, cy=0),
+        dict(fx=1, fy=-2, cx=0, cy=0),
+        dict(fx=np.nan, fy=1, cx=0, cy=0),
+        dict(fx=np.inf, fy=1, cx=0, cy=0),
+        dict(fx=1, fy=1, cx=np.nan, cy=0),
+        dict(fx=1, fy=1, cx=0, cy=np.inf),
+    ],
+)
 def test_bad_pinhole(kwargs):
     with pytest.raises(ValueError, match="PinholeCamera"):
         PinholeCamera(**kwargs)
@@ -133,8 +140,18 @@ def test_bad_orthographic(pixel_size):
         OrthographicCamera(pixel_size)
 
 
-@pytest.mark.parametrize("depth", [np.ones(5), np.ones((2, 3, 4)), np.ones((0, 4)), np.ones((4, 0)), np.float64(1.0),
-                                   np.array([["a", "b"], ["c", "d"]]), np.ones((2, 2), bool)])
+@pytest.mark.parametrize(
+    "depth",
+    [
+        np.ones(5),
+        np.ones((2, 3, 4)),
+        np.ones((0, 4)),
+        np.ones((4, 0)),
+        np.float64(1.0),
+        np.array([["a", "b"], ["c", "d"]]),
+        np.ones((2, 2), bool),
+    ],
+)
 def test_bad_depth(depth):
     with pytest.raises(ValueError, match="RangeImage: depth"):
         RangeImage(depth, CAMERAS["pinhole"])

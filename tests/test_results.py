@@ -30,19 +30,35 @@ from sqjax.superquadric import Superquadric
 
 
 def _sqs():
-    return [Superquadric.create((0.2, 0.1, 0.15), (0.5, 0.8), euler=(0.3, 0.6, -0.4), translation=(0.1, -0.2, 2.0)),
-            Superquadric.create((0.1, 0.1, 0.3), (1.0, 1.0), euler=(0.0, 1.2, 0.2), translation=(-0.3, 0.1, 2.5))]
+    return [
+        Superquadric.create((0.2, 0.1, 0.15), (0.5, 0.8), euler=(0.3, 0.6, -0.4), translation=(0.1, -0.2, 2.0)),
+        Superquadric.create((0.1, 0.1, 0.3), (1.0, 1.0), euler=(0.0, 1.2, 0.2), translation=(-0.3, 0.1, 2.5)),
+    ]
 
 
 def _fake():
     """(segmentation stand-in, RangeImage) with two parts and a 12 x 16 label image."""
     labels = np.zeros((12, 16), np.int32)
     labels[2:6, 2:8], labels[6:10, 8:14] = 1, 2
-    parts = [types.SimpleNamespace(superquadric=sq, region=np.flatnonzero(labels == i + 1), error=0.01 * (i + 1),
-                                   num_points=int((labels == i + 1).sum()),
-                                   num_explained=int((labels == i + 1).sum())) for i, sq in enumerate(_sqs())]
-    seg = types.SimpleNamespace(parts=parts, labels=labels, history=[], noise=0.002, threshold=0.006,
-                                timings={"total": 1.0, "compile": 0.5, "run": 0.5}, stats={"seeds": 4})
+    parts = [
+        types.SimpleNamespace(
+            superquadric=sq,
+            region=np.flatnonzero(labels == i + 1),
+            error=0.01 * (i + 1),
+            num_points=int((labels == i + 1).sum()),
+            num_explained=int((labels == i + 1).sum()),
+        )
+        for i, sq in enumerate(_sqs())
+    ]
+    seg = types.SimpleNamespace(
+        parts=parts,
+        labels=labels,
+        history=[],
+        noise=0.002,
+        threshold=0.006,
+        timings={"total": 1.0, "compile": 0.5, "run": 0.5},
+        stats={"seeds": 4},
+    )
     depth = np.full((12, 16), 2.0, np.float32)
     depth[0] = np.nan
     return seg, RangeImage(depth, PinholeCamera(20.0, 20.0, 7.5, 5.5))
@@ -73,7 +89,7 @@ def test_superquadric_from_dict_takes_euler_or_rotation_and_ignores_extras():
     sq = _sqs()[0]
     d = {**sq.to_dict(), "label": 3, "color": [1, 2, 3], "num_points": 10}
     _close(superquadric_from_dict(d), sq)
-    d.pop("rotation")   # euler_zyz only
+    d.pop("rotation")  # euler_zyz only
     _close(superquadric_from_dict(d), sq)
     with pytest.raises(ValueError, match="size"):
         superquadric_from_dict({"epsilon": [1, 1]})
@@ -108,7 +124,7 @@ def test_gltf_is_y_up_and_ply_camera_frame(tmp_path):
     seg, image = _fake()
     write_segmentation(seg, image, tmp_path, figure=False)
     glb = trimesh.load(tmp_path / "parts.glb")
-    camera = parts_to_scene(seg.parts)        # camera frame (y down, z forward)
+    camera = parts_to_scene(seg.parts)  # camera frame (y down, z forward)
     # the part centres: z forward (positive) in the camera frame, toward -z (in front of a glTF viewer)
     centre_glb = glb.dump(concatenate=True).bounds.mean(0)
     centre_cam = camera.dump(concatenate=True).bounds.mean(0)
@@ -145,11 +161,11 @@ def test_failed_write_leaves_earlier_outputs_and_no_partial_files(tmp_path, monk
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(export, "parts_to_mesh", boom)
-    seg.labels[:] = 0   # would change labels.npy / models.json if anything were written
+    seg.labels[:] = 0  # would change labels.npy / models.json if anything were written
     with pytest.raises(OSError):
         write_segmentation(seg, image, out, figure=False)
     after = {p.name: p.read_bytes() for p in out.iterdir()}
-    assert after == before      # nothing replaced, no temporary folder left
+    assert after == before  # nothing replaced, no temporary folder left
 
 
 def test_symlinks_in_out_are_replaced_not_followed(tmp_path):
@@ -159,7 +175,7 @@ def test_symlinks_in_out_are_replaced_not_followed(tmp_path):
     victim = tmp_path / "precious.txt"
     victim.write_text("keep me")
     os.symlink(victim, out / "models.json")
-    os.symlink(victim, out / "figure.png")   # stale output of an earlier run: the link goes, not the target
+    os.symlink(victim, out / "figure.png")  # stale output of an earlier run: the link goes, not the target
     write_segmentation(seg, image, out, figure=False)
     assert victim.read_text() == "keep me"
     assert not (out / "models.json").is_symlink() and json.loads((out / "models.json").read_text())["parts"]

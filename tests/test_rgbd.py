@@ -30,16 +30,20 @@ def _frame(tmp_path, h=24, w=32):
 @pytest.mark.parametrize("form", ["plain", "uois", "open3d", "K"])
 def test_read_rgbd_with_intrinsics_json(tmp_path, form):
     depth, rgb = _frame(tmp_path)
-    doc = {"plain": {"fx": CAM.fx, "fy": CAM.fy, "cx": CAM.cx, "cy": CAM.cy},
-           "uois": {"img_width": 32, "img_height": 24, "fx": CAM.fx, "fy": CAM.fy, "x_offset": CAM.cx,
-                    "y_offset": CAM.cy},
-           "open3d": {"width": 32, "height": 24,
-                      "intrinsic_matrix": [CAM.fx, 0, 0, 0, CAM.fy, 0, CAM.cx, CAM.cy, 1]},   # column-major
-           "K": {"K": [[CAM.fx, 0, CAM.cx], [0, CAM.fy, CAM.cy], [0, 0, 1]]}}[form]
+    doc = {
+        "plain": {"fx": CAM.fx, "fy": CAM.fy, "cx": CAM.cx, "cy": CAM.cy},
+        "uois": {"img_width": 32, "img_height": 24, "fx": CAM.fx, "fy": CAM.fy, "x_offset": CAM.cx, "y_offset": CAM.cy},
+        "open3d": {
+            "width": 32,
+            "height": 24,
+            "intrinsic_matrix": [CAM.fx, 0, 0, 0, CAM.fy, 0, CAM.cx, CAM.cy, 1],
+        },  # column-major
+        "K": {"K": [[CAM.fx, 0, CAM.cx], [0, CAM.fy, CAM.cy], [0, 0, 1]]},
+    }[form]
     (tmp_path / "cam.json").write_text(json.dumps(doc))
     img = read_rgbd(tmp_path / "depth.png", tmp_path / "color.png", intrinsics=tmp_path / "cam.json")
     assert img.camera == CAM
-    assert np.nanmax(np.abs(img.depth - depth)) <= 0.0005 + 1e-6      # millimetres -> metres
+    assert np.nanmax(np.abs(img.depth - depth)) <= 0.0005 + 1e-6  # millimetres -> metres
     assert np.array_equal(img.valid, np.isfinite(depth))
     assert img.colors.dtype == np.uint8 and np.array_equal(img.colors, rgb)
     assert np.array_equal(img.subsample(2).colors, rgb[::2, ::2])
@@ -61,12 +65,12 @@ def test_read_rgbd_errors_name_the_file(tmp_path):
 def test_uois_realsense_frame(tmp_path):
     """A real RealSense frame (the UOIS pickles, unpacked here) with its camera_params.json."""
     folder = data_path("uois_realsense_tabletop")
-    frame = np.load(folder / "image_0000.npy", allow_pickle=True).item()   # trusted test data
+    frame = np.load(folder / "image_0000.npy", allow_pickle=True).item()  # trusted test data
     Image.fromarray(frame["depth"]).save(tmp_path / "depth.png")
     Image.fromarray(frame["rgb"]).save(tmp_path / "rgb.png")
     img = read_rgbd(tmp_path / "depth.png", tmp_path / "rgb.png", intrinsics=folder / "camera_params.json")
     assert img.shape == (480, 640) and img.camera.fx == pytest.approx(612.937)
-    assert 0.2 < np.nanmedian(img.depth) < 3.0                         # metres
+    assert 0.2 < np.nanmedian(img.depth) < 3.0  # metres
     assert np.array_equal(img.colors, frame["rgb"])
 
 
@@ -84,9 +88,14 @@ def _pcd_with_rgb(path, h=4, w=5):
     packed = ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).astype(np.uint32)
     rec = np.empty(h * w, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4")])
     rec["x"], rec["y"], rec["z"] = xyz.T
-    rec["rgb"] = packed.view(np.float32)   # PCL stores rgb as a float holding the packed bytes
-    path.write_bytes((f"VERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {w}\n"
-                      f"HEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {h * w}\nDATA binary\n").encode() + rec.tobytes())
+    rec["rgb"] = packed.view(np.float32)  # PCL stores rgb as a float holding the packed bytes
+    path.write_bytes(
+        (
+            f"VERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {w}\n"
+            f"HEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {h * w}\nDATA binary\n"
+        ).encode()
+        + rec.tobytes()
+    )
     return rgb.astype(np.uint8).reshape(h, w, 3)
 
 
@@ -94,7 +103,7 @@ def test_organised_pcd_rgb_becomes_colors(tmp_path):
     rgb = _pcd_with_rgb(tmp_path / "c.pcd")
     img = read_range_image(tmp_path / "c.pcd", camera=CAM)
     assert np.array_equal(img.colors, rgb)
-    write_range_image(tmp_path / "c.npz", img)                       # npz keeps them
+    write_range_image(tmp_path / "c.npz", img)  # npz keeps them
     assert np.array_equal(read_range_image(tmp_path / "c.npz").colors, rgb)
 
 
@@ -107,7 +116,7 @@ def test_real_pcd_with_rgba_reads(tmp_path):
 # failures that must name the file
 
 
-@pytest.mark.parametrize("factor", [1.5, 3.0])   # PIL warns above MAX_IMAGE_PIXELS, raises above twice that
+@pytest.mark.parametrize("factor", [1.5, 3.0])  # PIL warns above MAX_IMAGE_PIXELS, raises above twice that
 def test_png_decompression_bomb_is_a_clear_error(tmp_path, monkeypatch, factor):
     from PIL import Image as PILImage
 
@@ -128,4 +137,4 @@ def test_real_mosd_pcd_keeps_its_rgba():
     folder = data_path("mosd", "test")
     image = read_range_image(sorted(folder.glob("*.pcd"))[0])
     assert image.colors is not None and image.colors.shape == image.shape + (3,)
-    assert 50 < image.colors.mean() < 230 and image.colors.std() > 10    # a real photo, not zeros
+    assert 50 < image.colors.mean() < 230 and image.colors.std() > 10  # a real photo, not zeros

@@ -69,8 +69,8 @@ def test_exp_matches_rodrigues_float64():
         (0.3, 1.2, -2.0),
         (-2.9, 0.1, 2.5),
         (1.0, np.pi / 2, 0.0),
-        (0.4, 0.0, 0.3),          # gimbal lock theta = 0: only phi + psi is defined
-        (0.4, np.pi, 0.3),        # gimbal lock theta = pi: only phi - psi is defined
+        (0.4, 0.0, 0.3),  # gimbal lock theta = 0: only phi + psi is defined
+        (0.4, np.pi, 0.3),  # gimbal lock theta = pi: only phi - psi is defined
         (0.0, 1e-7, 0.0),
     ],
 )
@@ -88,8 +88,9 @@ def test_euler_round_trip(angles):
 
 def test_euler_round_trip_random():
     rng = np.random.default_rng(2)
-    ang = np.stack([rng.uniform(-np.pi, np.pi, 500), rng.uniform(0.01, np.pi - 0.01, 500),
-                    rng.uniform(-np.pi, np.pi, 500)], -1)
+    ang = np.stack(
+        [rng.uniform(-np.pi, np.pi, 500), rng.uniform(0.01, np.pi - 0.01, 500), rng.uniform(-np.pi, np.pi, 500)], -1
+    )
     R = from_euler(jnp.asarray(ang, jnp.float32))
     assert np.allclose(np.asarray(to_euler(R)), ang, atol=2e-4)
     assert np.allclose(np.asarray(from_euler(to_euler(R))), np.asarray(R), atol=3e-6)
@@ -102,19 +103,22 @@ def test_paper_convention_zyz():
     assert np.allclose(R[:, 2], [np.cos(phi) * np.sin(theta), np.sin(phi) * np.sin(theta), np.cos(theta)], atol=1e-6)
 
 
-@pytest.mark.parametrize("fn, x", [
-    (so3.exp, jnp.zeros(3)),
-    (so3.exp, jnp.array([1e-9, -2e-9, 0.0])),
-    (so3.exp, jnp.array([0.0, 0.0, np.pi])),
-    (so3.log, jnp.eye(3)),
-    (so3.log, so3.exp(jnp.array([1e-4, 0.0, 0.0]))),
-    (so3.log, so3.exp(jnp.array([np.pi, 0.0, 0.0]))),
-    (so3.log, so3.exp(jnp.array([0.0, np.pi - 1e-3, 0.0]))),
-    (so3.to_euler, jnp.eye(3)),
-    (so3.to_euler, so3.from_euler(jnp.array([0.3, np.pi, 0.2]))),
-    (so3.to_euler, so3.from_euler(jnp.array([0.3, 0.8, 0.2]))),
-    (so3.from_euler, jnp.zeros(3)),
-])
+@pytest.mark.parametrize(
+    "fn, x",
+    [
+        (so3.exp, jnp.zeros(3)),
+        (so3.exp, jnp.array([1e-9, -2e-9, 0.0])),
+        (so3.exp, jnp.array([0.0, 0.0, np.pi])),
+        (so3.log, jnp.eye(3)),
+        (so3.log, so3.exp(jnp.array([1e-4, 0.0, 0.0]))),
+        (so3.log, so3.exp(jnp.array([np.pi, 0.0, 0.0]))),
+        (so3.log, so3.exp(jnp.array([0.0, np.pi - 1e-3, 0.0]))),
+        (so3.to_euler, jnp.eye(3)),
+        (so3.to_euler, so3.from_euler(jnp.array([0.3, np.pi, 0.2]))),
+        (so3.to_euler, so3.from_euler(jnp.array([0.3, 0.8, 0.2]))),
+        (so3.from_euler, jnp.zeros(3)),
+    ],
+)
 def test_gradients_finite(fn, x):
     J = jax.jit(jax.jacobian(fn))(x)
     assert bool(jnp.all(jnp.isfinite(J)))

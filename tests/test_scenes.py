@@ -94,7 +94,7 @@ def test_render_depth_is_z_and_nearest_part_wins():
     assert front.sum() > 100
     np.testing.assert_allclose(image.depth[front], 4.0, atol=1e-5)
     u, v = camera.project(np.array([[0.5, 0.5, 4.0], [-0.5, -0.5, 4.0]]))[0].T
-    assert front[int(np.ceil(v[1])):int(v[0]), int(np.ceil(u[1])):int(u[0])].all()
+    assert front[int(np.ceil(v[1])) : int(v[0]), int(np.ceil(u[1])) : int(u[0])].all()
     assert (image.labels == 1).sum() > 100
 
 

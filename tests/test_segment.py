@@ -31,12 +31,16 @@ def test_paper_scene_models_are_finite_and_consistent(paper_result):
     assert set(np.unique(seg.labels)) <= set(range(len(seg.parts) + 1))
     assert not np.any(seg.labels[~image.valid])
     for i, part in enumerate(seg.parts):
-        for leaf in (part.superquadric.size, part.superquadric.epsilon, part.superquadric.rotation,
-                     part.superquadric.translation):
+        for leaf in (
+            part.superquadric.size,
+            part.superquadric.epsilon,
+            part.superquadric.rotation,
+            part.superquadric.translation,
+        ):
             assert np.isfinite(np.asarray(leaf)).all()
         # parts and labels agree: every part owns labelled pixels, num_points counts them
         assert part.num_points == int(np.sum(seg.labels == i + 1)) > 0
-        assert part.num_explained == part.region.size   # num_points may exceed it (`propagate`)
+        assert part.num_explained == part.region.size  # num_points may exceed it (`propagate`)
         assert np.all(seg.labels.ravel()[part.region] >= 1)
         assert np.isfinite(part.error) and part.error <= part.num_explained * seg.threshold**2
     # the history holds the models after each selection and ends with the final ones
@@ -72,8 +76,9 @@ def test_flat_plane_is_one_part():
 def test_unorganised_cloud_with_knn_adjacency():
     a = sqjax.Superquadric.create([1, 1, 1])
     b = sqjax.Superquadric.create([1, 0.5, 0.7], [0.3, 0.3], translation=[4, 0, 0])
-    pts = np.concatenate([sqjax.sample_surface(a, 1500, seed=1, noise=0.005),
-                          sqjax.sample_surface(b, 1500, seed=2, noise=0.005)])
+    pts = np.concatenate(
+        [sqjax.sample_surface(a, 1500, seed=1, noise=0.005), sqjax.sample_surface(b, 1500, seed=2, noise=0.005)]
+    )
     seg = segment(pts)
     assert len(seg.parts) == 2 and seg.labels.shape == (3000,)
     la, lb = np.bincount(seg.labels[:1500]).argmax(), np.bincount(seg.labels[1500:]).argmax()
@@ -81,12 +86,15 @@ def test_unorganised_cloud_with_knn_adjacency():
     assert (seg.labels[:1500] == la).mean() > 0.95 and (seg.labels[1500:] == lb).mean() > 0.95
 
 
-@pytest.mark.parametrize("depth, message", [
-    (np.full((30, 40), np.nan), "no valid pixel"),
-    (np.zeros((30, 40)), "no valid pixel"),
-    (np.where(np.arange(1200).reshape(30, 40) == 7, 5.0, np.nan), "1 valid pixels"),
-    (np.full((3, 3), 5.0), "9 valid pixels"),
-])
+@pytest.mark.parametrize(
+    "depth, message",
+    [
+        (np.full((30, 40), np.nan), "no valid pixel"),
+        (np.zeros((30, 40)), "no valid pixel"),
+        (np.where(np.arange(1200).reshape(30, 40) == 7, 5.0, np.nan), "1 valid pixels"),
+        (np.full((3, 3), 5.0), "9 valid pixels"),
+    ],
+)
 def test_degenerate_images_get_a_clear_error(depth, message):
     with pytest.raises(ValueError, match=message):
         segment(RangeImage(depth, PinholeCamera(50, 50, 20, 15)))
@@ -122,11 +130,11 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     seg = segment(image, merge=False)
     # points: 128 when every region fits (seed windows), else max_points = 512
     assert all(N in (128, 512) for _, N in calls), sorted(set(calls))
-    assert all(K == fitting.call_size(2, N) for K, N in calls), sorted(set(calls))   # CPU: one chunk size
+    assert all(K == fitting.call_size(2, N) for K, N in calls), sorted(set(calls))  # CPU: one chunk size
     assert all(shapes == 1 for _, _, shapes in refits), refits
     assert sum(made for _, made, _ in refits) == len(calls)
-    assert any(made > 1 for _, made, _ in refits)      # the seeds: more than one call
-    rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().reseed)   # seeds, and each reseeding round
+    assert any(made > 1 for _, made, _ in refits)  # the seeds: more than one call
+    rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().reseed)  # seeds, and each reseeding round
     # the three starts of the seeds, then a step each, then the five starts of the parts' volumes
     assert len(refits) <= 3 * rounds + seg.stats["growth_steps"] + 5
     assert len(set(calls)) <= 6, sorted(set(calls))
@@ -141,7 +149,7 @@ def test_free_components_follow_the_adjacency():
     free = np.ones(6, bool)
     assert [c.tolist() for c in free_components(free, nb, 1, 10)] == [[0, 1, 2], [3, 4], [5]]
     assert [c.tolist() for c in free_components(free, nb, 2, 2)] == [[3, 4]]
-    free[1] = False                                       # explained point splits the chain
+    free[1] = False  # explained point splits the chain
     assert [c.tolist() for c in free_components(free, nb, 1, 10)] == [[0], [2], [3, 4], [5]]
 
 
@@ -219,17 +227,37 @@ def test_mosd_touching_parts_stay_apart(name, n_objects):
         assert score.n_truth == n_objects and score.under == 0, score.to_dict()
 
 
-@pytest.mark.parametrize("field, value", [
-    ("noise", -1.0), ("noise", float("nan")), ("noise", 0.0), ("threshold", -1.0), ("threshold", float("inf")),
-    ("window", -5), ("window", 4), ("stride", -1), ("rings", -1), ("max_steps", -3), ("keep_fraction", 2.0),
-    ("max_points", 0), ("enlarge", 0.0), ("selector", "greedyy"), ("subsample", 0), ("fit_steps", 0),
-    ("seed_inlier_fraction", 0.0), ("min_exclusive", 1.5), ("window", 2.5), ("merge", "yes"),
-    ("subdivide", "yes"), ("propagate", "yes"),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("noise", -1.0),
+        ("noise", float("nan")),
+        ("noise", 0.0),
+        ("threshold", -1.0),
+        ("threshold", float("inf")),
+        ("window", -5),
+        ("window", 4),
+        ("stride", -1),
+        ("rings", -1),
+        ("max_steps", -3),
+        ("keep_fraction", 2.0),
+        ("max_points", 0),
+        ("enlarge", 0.0),
+        ("selector", "greedyy"),
+        ("subsample", 0),
+        ("fit_steps", 0),
+        ("seed_inlier_fraction", 0.0),
+        ("min_exclusive", 1.5),
+        ("window", 2.5),
+        ("merge", "yes"),
+        ("subdivide", "yes"),
+        ("propagate", "yes"),
+    ],
+)
 def test_bad_options_are_refused_at_construction_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"SegmentOptions: {field} must be"):
         sqjax.SegmentOptions(**{field: value})
-    with pytest.raises(ValueError, match=field):   # the same through segment's keywords, before any work
+    with pytest.raises(ValueError, match=field):  # the same through segment's keywords, before any work
         segment(np.full((3, 3, 3), np.nan), **{field: value})
 
 
@@ -242,8 +270,8 @@ def test_quadtree_seeds_reach_parts_smaller_than_a_window():
     H, W, window, stride, min_seed = 40, 50, 10, 5, 22
     idmap = np.arange(H * W).reshape(H, W)
     part = np.zeros((H, W), bool)
-    part[13:22, 17:26] = True                     # 9 x 9 pixels, not aligned with the window grid
-    broken = np.zeros((H, W), bool)               # pixels joined to a neighbour across the part's edge
+    part[13:22, 17:26] = True  # 9 x 9 pixels, not aligned with the window grid
+    broken = np.zeros((H, W), bool)  # pixels joined to a neighbour across the part's edge
     for axis in (0, 1):
         for shift in (1, -1):
             broken |= part != np.roll(part, shift, axis)
@@ -278,8 +306,9 @@ def test_cloud_labels_stay_aligned_with_the_input_rows():
     are rows of the input)."""
     a = sqjax.Superquadric.create([1, 1, 1])
     b = sqjax.Superquadric.create([1, 0.5, 0.7], [0.3, 0.3], translation=[4, 0, 0])
-    pts = np.concatenate([sqjax.sample_surface(a, 800, seed=1, noise=0.005),
-                          sqjax.sample_surface(b, 800, seed=2, noise=0.005)])
+    pts = np.concatenate(
+        [sqjax.sample_surface(a, 800, seed=1, noise=0.005), sqjax.sample_surface(b, 800, seed=2, noise=0.005)]
+    )
     holed = pts.copy()
     holed[::7] = np.nan
     seg = segment(holed)
@@ -301,7 +330,7 @@ def test_merge_candidates_grow_linearly_with_the_models():
     regions[np.arange(4000) % 200, np.arange(4000)] = True
     pairs = _merge_candidates(pts, regions)
     assert len(pairs) <= MERGE_NEIGHBOURS * 200 and {i for p in pairs for i in p} == set(range(200))
-    assert len(_merge_candidates(pts, regions[:5])) == 10      # few models: every pair, as before
+    assert len(_merge_candidates(pts, regions[:5])) == 10  # few models: every pair, as before
 
 
 def test_large_images_are_segmented_at_a_working_resolution_and_labelled_in_full():
@@ -326,9 +355,9 @@ def test_noise_exponent_from_residuals_at_several_depths():
     z = rng.uniform(0.6, 1.6, 300)
     for k in (2.0, 0.0):
         sigma = 1.4e-3 * z**k * rng.lognormal(0, 0.2, z.size)
-        sigma[:20] *= 30.0                                        # seeds straddling an edge
+        sigma[:20] *= 30.0  # seeds straddling an edge
         assert abs(noise_exponent(z, sigma) - k) <= 0.2 * max(k, 1.0)
-    assert noise_exponent(np.full(50, 1.0), np.full(50, 1e-3)) == 0.0    # one depth: no slope
+    assert noise_exponent(np.full(50, 1.0), np.full(50, 1e-3)) == 0.0  # one depth: no slope
 
 
 def test_segmentation_recovers_a_z_squared_noise_model():
@@ -362,12 +391,12 @@ def test_a_model_in_front_of_the_data_violates_free_space():
     centre = run.centre
     half = 0.1
 
-    def slab(z):   # a 2 x 2 x 0.2 box centred at depth z, in the runner's centred frame
+    def slab(z):  # a 2 x 2 x 0.2 box centred at depth z, in the runner's centred frame
         return np.r_[np.log([1.0, 1.0, half]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([0.0, 0.0, z]) - centre]
 
     behind, in_front = slab(5.0 + half), slab(5.0 - half)
     v = run.free_space_violations(np.stack([behind, in_front]))
-    covered = np.sum(np.all(np.abs(dom.points[:, :2]) < 1.0, 1))     # wall pixels in the slab's footprint
+    covered = np.sum(np.all(np.abs(dom.points[:, :2]) < 1.0, 1))  # wall pixels in the slab's footprint
     assert v[0] == 0 and v[1] >= 0.9 * covered > 0, (v, covered)
     assert np.array_equal(run.free_space_violations(np.stack([behind, in_front]), box=True), v)
     # a bar 40 m long and 0.1 m thick across the rays, 0.3 m in front of the wall: the bounding sphere's
@@ -377,9 +406,9 @@ def test_a_model_in_front_of_the_data_violates_free_space():
     behind_camera = bar.copy()
     behind_camera[10] = -1.0 - centre[2]
     v = run.free_space_violations(np.stack([bar, behind_camera]), box=True)
-    row = np.sum(np.abs(dom.points[:, 1]) < 0.1 * 4.7 / 5.0)         # wall pixels in the bar's shadow
+    row = np.sum(np.abs(dom.points[:, 1]) < 0.1 * 4.7 / 5.0)  # wall pixels in the bar's shadow
     assert v[0] >= 0.9 * row > 0 and v[1] == 0, (v, row)
-    assert run.free_space_violations(np.stack([bar]))[0] < 0.5 * row   # what the sphere's chord sees
+    assert run.free_space_violations(np.stack([bar]))[0] < 0.5 * row  # what the sphere's chord sees
 
 
 def test_a_model_where_the_camera_saw_nothing_violates_free_space():
@@ -397,7 +426,7 @@ def test_a_model_where_the_camera_saw_nothing_violates_free_space():
     dom, noise, tau = recovery._domain(image, opts, 8)
     run = recovery._Runner(dom, opts, noise, tau, jnp.float32)
 
-    def box(x, z):   # a 0.6 x 0.6 x 0.2 box centred at (x, 0, z), in the runner's centred frame
+    def box(x, z):  # a 0.6 x 0.6 x 0.2 box centred at (x, 0, z), in the runner's centred frame
         return np.r_[np.log([0.3, 0.3, 0.1]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([x, 0.0, z]) - run.centre]
 
     # the wall spans x in [-1.25, 1.35] at depth 5.2; the second box covers about 5 x 5 empty pixels
@@ -439,6 +468,6 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
     assert np.median(iou) > np.median(before) + 0.1, (iou, before)
     extent = max(float(np.max(np.asarray(t.size))) for t in truth)
     assert all(float(np.max(np.asarray(seg.parts[n - 1].superquadric.size))) < 2 * extent for _, n in pairs)
-    for i, p in enumerate(seg.parts):                                # regions: labelled points it explains
+    for i, p in enumerate(seg.parts):  # regions: labelled points it explains
         assert p.num_explained == p.region.size <= p.num_points == np.sum(seg.labels == i + 1)
         assert np.all(seg.labels.ravel()[p.region] == i + 1)

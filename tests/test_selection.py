@@ -32,7 +32,7 @@ def test_greedy_drops_a_model_contained_in_another():
 
 def test_greedy_keeps_disjoint_models_and_rejects_tiny_ones():
     regions = np.zeros((3, 100), bool)
-    regions[0, :50] = regions[1, 50:95] = regions[2, 95:] = True   # the third has 5 points < 11 params
+    regions[0, :50] = regions[1, 50:95] = regions[2, 95:] = True  # the third has 5 points < 11 params
     Q = build_q(regions, np.zeros((3, 100)), [11] * 3, SelectionWeights(1.0, 1.0, 1.0))
     assert select_greedy(Q).tolist() == [True, True, False]
 
@@ -52,7 +52,7 @@ def test_solvers_ordering_on_random_problems():
             assert objective(Q, m) <= objective(Q, ex) + 1e-9
         m, stats = select(Q, "exact")
         gaps += stats["greedy_gap"] > 1e-9
-    assert gaps > 0   # the count of greedy's misses is reported, and it does miss sometimes
+    assert gaps > 0  # the count of greedy's misses is reported, and it does miss sometimes
 
 
 def test_bad_method_and_too_many_for_exact():

@@ -23,17 +23,25 @@ def _python(code: str, env=None, timeout=120):
 
 
 def test_help_does_not_import_jax():
-    r = _python("import sys\nfrom sqjax.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
-                "for c in ('segment', 'demo', 'fit'):\n    main([c, '--help'])\n"
-                "print('JAX' if 'jax' in sys.modules else 'NOJAX')")
+    r = _python(
+        "import sys\nfrom sqjax.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "for c in ('segment', 'demo', 'fit'):\n    main([c, '--help'])\n"
+        "print('JAX' if 'jax' in sys.modules else 'NOJAX')"
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().endswith("NOJAX"), r.stdout[-300:]
 
 
 def test_help_is_fast():
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "sqjax", "--help"], capture_output=True, text=True, cwd=ROOT,
-                       env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "sqjax", "--help"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=60,
+    )
     wall = time.perf_counter() - t
     assert r.returncode == 0 and "demo" in r.stdout
     assert wall < 3.0, f"sqjax --help took {wall:.2f} s (target 1 s; 3 s allows for a loaded test machine)"
@@ -44,6 +52,7 @@ def test_lazy_names_resolve_and_dir_is_complete():
         assert getattr(sqjax, name) is not None, name
     assert set(sqjax.__all__) <= set(dir(sqjax))
     from sqjax import Superquadric, segment  # noqa: F401
+
     with pytest.raises(AttributeError, match="no attribute 'nonsense'"):
         sqjax.nonsense  # noqa: B018
 
@@ -57,12 +66,14 @@ def test_enable_compilation_cache_sets_jax(tmp_path):
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "c")
         assert jax.config.jax_persistent_cache_min_compile_time_secs < 1.0
         from sqjax import cache
+
         assert cache._KERNEL_DIR == tmp_path / "c" / "sqjax-kernels"
-        assert sqjax.enable_compilation_cache("/proc/sqjax-test/cache") is None   # unusable: no failure
+        assert sqjax.enable_compilation_cache("/proc/sqjax-test/cache") is None  # unusable: no failure
     finally:
         jax.config.update("jax_compilation_cache_dir", before[0])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
         from sqjax import cache
+
         cache.set_kernel_dir(None)
 
 
@@ -99,21 +110,21 @@ def test_a_kept_kernel_gives_the_traced_kernels_results_without_tracing(kernel_d
 
     rng = np.random.default_rng(3)
     pts = rng.normal(size=(2, 150, 3)) * (0.5, 0.3, 0.2)
-    jax.clear_caches()                         # nothing traced yet in this process
+    jax.clear_caches()  # nothing traced yet in this process
     traces = _traces(monkeypatch)
     first = sqjax.fit(pts)
     files = list(kernel_dir.rglob("*.jaxexport"))
     assert len(files) == 1 and traces[0] == 1
-    cache._LOADED.clear()                      # a new process: only the disk is left
+    cache._LOADED.clear()  # a new process: only the disk is left
     jax.clear_caches()
     second = sqjax.fit(pts)
     assert traces[0] == 1, "the kept kernel was traced again"
     files[0].write_bytes(b"not a module")
     cache._LOADED.clear()
     third = sqjax.fit(pts)
-    assert traces[0] == 2 and files[0].stat().st_size > 100   # exported again, and rewritten
+    assert traces[0] == 2 and files[0].stat().st_size > 100  # exported again, and rewritten
     cache.set_kernel_dir(None)
-    direct = sqjax.fit(pts)                    # the kernel as traced and compiled, no module
+    direct = sqjax.fit(pts)  # the kernel as traced and compiled, no module
     for out in (first, second, third):
         for a, b in zip(jax_leaves(direct), jax_leaves(out)):
             np.testing.assert_array_equal(a, b)
@@ -174,6 +185,6 @@ def test_figure_and_progress_dependencies_are_core():
 def test_importing_the_segment_module_keeps_the_segment_function():
     import importlib
 
-    module = importlib.import_module("sqjax.segment")   # as `from sqjax.segment import ...` does
+    module = importlib.import_module("sqjax.segment")  # as `from sqjax.segment import ...` does
     assert sqjax.segment is module.segment and callable(sqjax.segment)
-    assert sqjax.evaluate is importlib.import_module("sqjax.evaluate")   # public modules stay modules
+    assert sqjax.evaluate is importlib.import_module("sqjax.evaluate")  # public modules stay modules

@@ -101,14 +101,16 @@ FUNCTIONS = (inside_outside, residual, distance, radial_distance)
 def _values_and_gradients(sq, pts):
     """Every function of this module at pts; the gradients of their (squashed) sum w.r.t. each point and
     the parameters: one reverse pass, in which a NaN or inf of any of the four would show."""
+
     def total(s, p):
         return sum(jnp.tanh(fn(s, p)) for fn in FUNCTIONS)
 
     out = {fn.__name__: fn(sq, pts) for fn in FUNCTIONS}
     out["d/dpoints"] = jax.vmap(jax.grad(total, argnums=1), in_axes=(None, 0))(sq, pts)
     g = jax.grad(lambda s: jnp.sum(total(s, pts)))(sq)
-    out.update({f"d/d{name}": getattr(g, name) for name in ("size", "epsilon", "rotation", "translation",
-                                                              "taper", "bend")})
+    out.update(
+        {f"d/d{name}": getattr(g, name) for name in ("size", "epsilon", "rotation", "translation", "taper", "bend")}
+    )
     return out
 
 
@@ -137,8 +139,9 @@ def test_mesh_is_watertight(size, eps, extra):
     assert mesh.volume > 0
 
 
-@pytest.mark.parametrize("size, eps", [((1.0, 0.6, 1.4), (1.0, 1.0)), ((1.0, 0.6, 1.4), (0.5, 0.8)),
-                                       ((0.8, 1.0, 0.6), (1.3, 0.7))])
+@pytest.mark.parametrize(
+    "size, eps", [((1.0, 0.6, 1.4), (1.0, 1.0)), ((1.0, 0.6, 1.4), (0.5, 0.8)), ((0.8, 1.0, 0.6), (1.3, 0.7))]
+)
 def test_eq10_distance_near_surface(size, eps):
     """Points moved by h along the surface normal: eq. 10 gives h to first order."""
     sq = Superquadric.create(size, eps, **POSE)
@@ -158,7 +161,7 @@ def test_radial_distance_exact_along_rays():
     rng = np.random.default_rng(0)
     d = rng.standard_normal((300, 3))
     a = np.asarray(sq.size, float)
-    u = d / np.sqrt(np.sum((d / a) ** 2, -1, keepdims=True))      # on the ellipsoid in the model frame
+    u = d / np.sqrt(np.sum((d / a) ** 2, -1, keepdims=True))  # on the ellipsoid in the model frame
     s = rng.uniform(0.05, 3.0, (300, 1))
     world = (s * u) @ np.asarray(sq.rotation, float).T + np.asarray(sq.translation, float)
     got = np.asarray(jax.jit(radial_distance)(sq, jnp.asarray(world, jnp.float32)))
@@ -194,8 +197,15 @@ def test_create_euler_and_rotation_agree():
     assert set(d) >= {"size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend"}
 
 
-@pytest.mark.parametrize("size, eps", [((1.0, 0.6, 1.4), (1.0, 1.0)), ((0.8, 1.2, 0.5), (0.1, 0.1)),
-                                       ((1.5, 0.7, 0.9), (1.9, 1.9)), ((0.9, 1.1, 1.3), (0.3, 1.7))])
+@pytest.mark.parametrize(
+    "size, eps",
+    [
+        ((1.0, 0.6, 1.4), (1.0, 1.0)),
+        ((0.8, 1.2, 0.5), (0.1, 0.1)),
+        ((1.5, 0.7, 0.9), (1.9, 1.9)),
+        ((0.9, 1.1, 1.3), (0.3, 1.7)),
+    ],
+)
 def test_segmentation_distance_kernel_matches_eq10(size, eps):
     """The closed-form eq. 10 kernel of segmentation (model, point pairs; no autodiff) gives the
     autodiff `distance` for undeformed models, and is finite at the hard points."""
@@ -209,7 +219,7 @@ def test_segmentation_distance_kernel_matches_eq10(size, eps):
     hard = _hard_points(sq)
     allp = jnp.concatenate([pts, hard])
     idx = jnp.arange(allp.shape[0], dtype=jnp.int32)
-    views = allp / jnp.maximum(jnp.linalg.norm(allp, axis=1, keepdims=True), 1e-6)   # camera at the origin
+    views = allp / jnp.maximum(jnp.linalg.norm(allp, axis=1, keepdims=True), 1e-6)  # camera at the origin
     d, inside, away = _pair_distances(jnp.repeat(theta, idx.size, 0), allp, views, idx, 1.15, 0.0)
     assert bool(jnp.all(jnp.isfinite(d)))
     # away: the outward normal (autodiff gradient of F) turns from the camera, n . view > 0.2
@@ -217,10 +227,10 @@ def test_segmentation_distance_kernel_matches_eq10(size, eps):
     cos = np.sum(np.asarray(g) * np.asarray(views[:500]), 1) / np.linalg.norm(np.asarray(g), axis=1)
     sure = np.abs(cos - 0.2) > 1e-3
     np.testing.assert_array_equal(np.asarray(away[:500])[sure], (cos > 0.2)[sure])
-    assert 0 < int(np.sum(cos > 0.2)) < 500                # both kinds among the samples
+    assert 0 < int(np.sum(cos > 0.2)) < 500  # both kinds among the samples
     np.testing.assert_allclose(d[:500], _jit_distance(sq, pts), rtol=2e-3, atol=1e-5)
     f_big = np.asarray(inside_outside(_sq(np.asarray(size) * 1.15, eps, {}), pts))
-    clear = np.abs(f_big - 1.0) > 1e-3                   # not on the enlarged surface itself
+    clear = np.abs(f_big - 1.0) > 1e-3  # not on the enlarged surface itself
     np.testing.assert_array_equal(np.asarray(inside[:500])[clear], (f_big <= 1.0)[clear])
 
 
@@ -228,19 +238,22 @@ def test_segmentation_distance_kernel_matches_eq10(size, eps):
 # issue 15: construction checks, bending consistent for small k
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    (dict(size=(1.0, 0.0, 1.0)), "size"),
-    (dict(size=(1.0, -2.0, 1.0)), "size"),
-    (dict(size=(1.0, np.nan, 1.0)), "size"),
-    (dict(size=(1.0, 1.0, 1.0), epsilon=(0.0, 1.0)), "epsilon"),
-    (dict(size=(1.0, 1.0, 1.0), epsilon=(np.nan, 1.0)), "epsilon"),
-    (dict(size=(1.0, 1.0, 1.0), rotation=np.diag([1.0, 1.0, 2.0])), "rotation"),
-    (dict(size=(1.0, 1.0, 1.0), rotation=np.diag([1.0, 1.0, -1.0])), "rotation"),
-    (dict(size=(1.0, 1.0, 1.0), translation=(0.0, np.inf, 0.0)), "translation"),
-    (dict(size=(1.0, 1.0, 1.0), taper=(1.5, 0.0)), "taper"),
-    (dict(size=(1.0, 1.0, 1.0), bend=(-0.1, 0.0)), "bend"),
-    (dict(size=(1.0, 1.0)), "size"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        (dict(size=(1.0, 0.0, 1.0)), "size"),
+        (dict(size=(1.0, -2.0, 1.0)), "size"),
+        (dict(size=(1.0, np.nan, 1.0)), "size"),
+        (dict(size=(1.0, 1.0, 1.0), epsilon=(0.0, 1.0)), "epsilon"),
+        (dict(size=(1.0, 1.0, 1.0), epsilon=(np.nan, 1.0)), "epsilon"),
+        (dict(size=(1.0, 1.0, 1.0), rotation=np.diag([1.0, 1.0, 2.0])), "rotation"),
+        (dict(size=(1.0, 1.0, 1.0), rotation=np.diag([1.0, 1.0, -1.0])), "rotation"),
+        (dict(size=(1.0, 1.0, 1.0), translation=(0.0, np.inf, 0.0)), "translation"),
+        (dict(size=(1.0, 1.0, 1.0), taper=(1.5, 0.0)), "taper"),
+        (dict(size=(1.0, 1.0, 1.0), bend=(-0.1, 0.0)), "bend"),
+        (dict(size=(1.0, 1.0)), "size"),
+    ],
+)
 def test_create_rejects_bad_values_naming_the_field(kwargs, field):
     """https://github.com/sqjax/sqjax/issues/15: create accepted size <= 0, NaN, non-orthonormal rotations."""
     size = kwargs.pop("size")
@@ -260,6 +273,7 @@ def test_bending_round_trip_and_formula_for_small_k(k):
     Forward bending against the textbook formula (float64), and unbend(bend(x)) == x, in mm-sized
     coordinates (|x| up to 100) where k = 1e-4 moves points by ~0.5."""
     from sqjax.superquadric import bend_points, unbend
+
     rng = np.random.default_rng(0)
     x = rng.uniform(-100, 100, (500, 3))
     alpha = 0.7
@@ -272,17 +286,22 @@ def test_bending_round_trip_and_formula_for_small_k(k):
         dR = (1 - k * r) * 2 * np.sin(g / 2) ** 2 / k if k > 0 else 0 * r
         Z = (1 - k * r) * np.sin(g) / k if k > 0 else x[:, 2]
         assert np.allclose(xb[:, 2], Z, atol=1e-9) and np.allclose(xb[:, 0], x[:, 0] + ca * dR, atol=1e-9)
-        front = (1 - k * r > 0) & (np.abs(g) < np.pi)   # the bending's domain: before its centre, angle < pi
+        front = (1 - k * r > 0) & (np.abs(g) < np.pi)  # the bending's domain: before its centre, angle < pi
         back = np.asarray(unbend(jnp.asarray(xb), b))
         assert np.allclose(back[front], x[front], atol=1e-9)
-    back32 = np.asarray(unbend(bend_points(jnp.asarray(x, jnp.float32), jnp.array([k, alpha], jnp.float32)),
-                               jnp.array([k, alpha], jnp.float32)))
-    tame = front & (np.abs(g) < 1.0)       # float32: atan2 near the angle pi is ill-conditioned
+    back32 = np.asarray(
+        unbend(
+            bend_points(jnp.asarray(x, jnp.float32), jnp.array([k, alpha], jnp.float32)),
+            jnp.array([k, alpha], jnp.float32),
+        )
+    )
+    tame = front & (np.abs(g) < 1.0)  # float32: atan2 near the angle pi is ill-conditioned
     assert np.allclose(back32[tame], x[tame], atol=1e-4)
 
 
 def test_bending_gradient_finite_at_zero_curvature():
     from sqjax.superquadric import bend_points, unbend
+
     x = jnp.asarray(np.random.default_rng(1).uniform(-2, 2, (50, 3)), jnp.float32)
     for f in (bend_points, unbend):
         g = jax.grad(lambda b, f=f: jnp.sum(f(x, b) ** 2))(jnp.array([0.0, 0.3]))

@@ -19,8 +19,12 @@ def problems(K, n, seed=0):
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(K):
-        sq = Superquadric.create(rng.uniform(0.5, 2.0, 3), rng.uniform(0.3, 1.7, 2),
-                                 euler=rng.uniform(-3, 3, 3), translation=rng.uniform(-1, 1, 3))
+        sq = Superquadric.create(
+            rng.uniform(0.5, 2.0, 3),
+            rng.uniform(0.3, 1.7, 2),
+            euler=rng.uniform(-3, 3, 3),
+            translation=rng.uniform(-1, 1, 3),
+        )
         view = np.asarray(sq.translation) + 10 * rng.standard_normal(3)
         out.append(sample_surface(sq, n, seed=int(rng.integers(1000)), noise=0.01, viewpoint=view))
     return np.stack(out)
@@ -65,9 +69,9 @@ def test_jit_equals_no_jit():
 def test_kernel_traces_once_per_bucket(monkeypatch):
     counted = eqx.debug.assert_max_traces(fitting._map_problems, max_traces=None)
     monkeypatch.setattr(fitting, "_map_problems", counted)
-    opts = FitOptions(max_steps=2, multistart=False)   # a fresh compile-cache key for this test
+    opts = FitOptions(max_steps=2, multistart=False)  # a fresh compile-cache key for this test
     pts = problems(2, 100, seed=2)
-    for n in (40, 50, 64):                              # growth steps inside one bucket (128): one trace
+    for n in (40, 50, 64):  # growth steps inside one bucket (128): one trace
         fit(pts[:, :n], options=opts)
     fit(pts[:, :60], mask=np.broadcast_to(np.arange(60) < 50, (2, 60)), options=opts)
     assert eqx.debug.get_num_traces(counted) == 1
