@@ -176,7 +176,7 @@ def one_view(sq, n_points: int, rng) -> np.ndarray:
     mean size (`NOISE`)."""
     view = rng.standard_normal(3)
     view = np.asarray(sq.translation) + 10 * view / np.linalg.norm(view)
-    return sqjax.sample_surface(
+    return sqjax.mesh.sample_surface(
         sq, n_points, seed=int(rng.integers(2**31)), noise=NOISE * float(np.mean(sq.size)), viewpoint=view
     )
 
@@ -188,7 +188,7 @@ def batch_sq(params) -> sqjax.Superquadric:
 
 def iou(truth, fitted: sqjax.Superquadric) -> np.ndarray:
     fitted = jax.tree.map(lambda v: np.asarray(v, np.float32), fitted)
-    return sqjax.volume_iou_batch(batch_sq(truth), fitted, n=20_000)
+    return sqjax.evaluate.volume_iou_batch(batch_sq(truth), fitted, n=20_000)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -381,7 +381,7 @@ def suite_loop(args, results):
     sp = [scipy_fit(d[1][0]) for d in data[:S]]
     sp_rate = S / (time.perf_counter() - t0)
     sp_iou = iou(truth[:S], batch_sq([x[0] for x in sp]))
-    buckets = sorted({sqjax.fitting.bucket(int(m)) for m in ns})
+    buckets = sorted({sqjax.padding.bucket(int(m)) for m in ns})
     row = {
         "suite": "loop",
         "problems": M,
@@ -423,7 +423,7 @@ def slab_problems(n=400, seed=0):
         sq = sqjax.Superquadric.create(size, eps)
         view = np.array([0.3, -0.2, 10.0])  # face-on: the view axis is the thin axis
         pts.append(
-            sqjax.sample_surface(sq, n, seed=int(rng.integers(2**31)), noise=NOISE * np.mean(size), viewpoint=view)
+            sqjax.mesh.sample_surface(sq, n, seed=int(rng.integers(2**31)), noise=NOISE * np.mean(size), viewpoint=view)
         )
         truth.append((np.array(size), np.array(eps), np.eye(3), np.zeros(3)))
     return truth, np.stack(pts)
@@ -436,7 +436,9 @@ def suite_slabs(args, results):
         size = np.asarray(out.superquadric.size)
         R = np.asarray(out.superquadric.rotation)
         thick = np.array([size[k][np.argmax(np.abs(R[k][2]))] for k in range(len(SLABS))])  # along world z
-        res = sqjax.signed_distance if args.residual == "distance" else sqjax.residual  # the cost the fit minimised
+        res = (
+            sqjax.superquadric.signed_distance if args.residual == "distance" else sqjax.residual
+        )  # the cost the fit minimised
         f_true = np.array([np.sum(np.asarray(res(batch_sq([truth[k]]), pts[k][None])) ** 2) for k in range(len(SLABS))])
         f_fit = np.array(
             [
@@ -485,7 +487,7 @@ def suite_deform(args, results):
     for kind in ("tapered", "bent"):
         truth_sq, pts = deformed_problems(200, K, kind, seed=16)
         out = sqjax.fit(pts, deform=True, residual=args.residual)
-        sc = sqjax.volume_iou_batch(
+        sc = sqjax.evaluate.volume_iou_batch(
             truth_sq, jax.tree.map(lambda v: np.asarray(v, np.float32), out.superquadric), n=20_000
         )
         row = {
@@ -584,7 +586,7 @@ def main():
                         "compile_s": max(first - steady, 0.0),
                         "steady_s": steady,
                         "fits_per_s": k / steady,
-                        "point_iterations_per_s": k * options.point_iterations(sqjax.fitting.bucket(n)) / steady,
+                        "point_iterations_per_s": k * options.point_iterations(sqjax.padding.bucket(n)) / steady,
                         "speedup_vs_scipy": (k / steady) / srow["fits_per_s"],
                         "iou_median": float(np.median(scores)),
                         "gross_failures": float(np.mean(scores < 0.5)),

@@ -103,7 +103,7 @@ def _scalar(name):
         if name == "radial_distance":
             return sqm.radial_distance(sq, point)
         x = sqm.to_model_frame(sq, point)
-        return sqm.log_inside_outside_local(x, jnp.log(size), epsilon)
+        return sqm.log_inside_outside(x, jnp.log(size), epsilon)
 
     return f
 

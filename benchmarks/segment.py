@@ -7,7 +7,7 @@
     python benchmarks/segment.py --labels out/labels     # also every scene's label image (.npz per suite)
 
 Suites:
-- `synthetic`: seeded `sqjax.random_scene`s (2-6 separate, touching, intersecting or occluding parts,
+- `synthetic`: seeded `sqjax.scenes.random_scene`s (2-6 separate, touching, intersecting or occluding parts,
   120 x 160, depth noise 0.005).
 - `mosd`: every real Kinect scene in ../shared/data/mosd (read its README), subsampled `--mosd-step`
   (default 4: 160 x 120, as the paper subsampled its dense images); ground truth label // 10 per
@@ -42,7 +42,8 @@ import numpy as np
 import sqjax
 from machine import cpu_name  # benchmarks/ is on sys.path when run as a script
 from sqjax.evaluate import hoover
-from sqjax.scenes import OBJECTS, default_camera, multipart_scene, render
+from sqjax.raycast import render
+from sqjax.scenes import OBJECTS, default_camera, multipart_scene
 
 DATA = Path(os.environ.get("SQJAX_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 MIN_VISIBLE = 30
@@ -101,11 +102,12 @@ def run_scene(image, truth, *, table=None, truth_sq=None, figure=None, found=Non
     if truth_sq is not None:
         s = hoover(truth, seg.labels, tolerance=0.8, ignore=ignore)
         row["iou"] = [
-            float(sqjax.volume_iou(truth_sq[m - 1], seg.parts[n - 1].superquadric, n=4000)) for m, n in s.correct_pairs
+            float(sqjax.evaluate.volume_iou(truth_sq[m - 1], seg.parts[n - 1].superquadric, n=4000))
+            for m, n in s.correct_pairs
         ]
     if figure is not None:
         Path(figure).parent.mkdir(parents=True, exist_ok=True)
-        sqjax.figure_sequence(image, seg, figure, title=Path(figure).stem, dpi=60)
+        sqjax.plot.figure_sequence(image, seg, figure, title=Path(figure).stem, dpi=60)
     return row
 
 
@@ -237,7 +239,7 @@ def main(argv=None):
     scenes = {}  # suite -> [(name, thunk returning (image, run_scene kwargs))]
     if "synthetic" in suites:
         scenes["synthetic"] = [
-            (f"random:{s}", lambda s=s: (sqjax.random_scene(s, n_parts=(2, 6))[0], {})) for s in range(n_syn)
+            (f"random:{s}", lambda s=s: (sqjax.scenes.random_scene(s, n_parts=(2, 6))[0], {})) for s in range(n_syn)
         ]
     if "multipart" in suites:
 

@@ -1,63 +1,46 @@
 """sqjax: direct part-level segmentation of range images with superquadrics, in JAX.
 
-The names below are imported on first use (module-level `__getattr__`, PEP 562), so `import sqjax`
-and the command line's `--help` do not import JAX; `from sqjax import X` and `sqjax.X` work as usual.
+The public API is the names below, after the paper's ideas; everything else lives in submodules named
+after them (`sqjax.scenes`, `sqjax.evaluate`, `sqjax.mesh`, `sqjax.plot`, ...), which `sqjax.<name>`
+imports on first use. Names are imported on first use too (PEP 562), so `import sqjax` and the
+command line's `--help` do not import JAX.
 """
 
-import sys
-import types
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
+from importlib.util import find_spec
 
-# public name -> the module that defines it
 _NAMES = {
-    "HooverScore": "evaluate",
-    "explained_fraction": "evaluate",
-    "hoover": "evaluate",
-    "parameter_errors": "evaluate",
-    "volume_iou": "evaluate",
-    "volume_iou_batch": "evaluate",
-    "label_colors": "export",
-    "labels_to_png": "export",
-    "parts_to_scene": "export",
-    "write_segmentation": "export",
-    "read_segmentation": "export",
-    "superquadric_from_dict": "export",
-    "enable_compilation_cache": "cache",
-    "Fit": "fitting",
-    "FitOptions": "fitting",
-    "fit": "fitting",
-    "read_points": "formats",
-    "read_range_image": "formats",
-    "read_rgbd": "formats",
-    "write_points": "formats",
-    "write_range_image": "formats",
-    "OrthographicCamera": "rangeimage",
-    "PinholeCamera": "rangeimage",
-    "RangeImage": "rangeimage",
-    "figure_sequence": "plot",
-    "paper_scene": "scenes",
-    "random_scene": "scenes",
-    "multipart_scene": "scenes",
-    "render": "scenes",
-    "Segmentation": "segment",
-    "SegmentOptions": "segment",
-    "segment": "segment",
-    "segment_many": "dataset",
-    "SelectionWeights": "selection",
+    # the superquadric: inside-outside function (eq. 5), size-weighted residual (eq. 7), distance (eq. 10)
     "Superquadric": "superquadric",
-    "contains": "superquadric",
-    "distance": "superquadric",
     "inside_outside": "superquadric",
-    "radial_distance": "superquadric",
     "residual": "superquadric",
-    "signed_distance": "superquadric",
-    "sample_surface": "superquadric",
-    "to_trimesh": "superquadric",
+    "distance": "superquadric",
+    # recovery of one superquadric (Solina & Bajcsy), batched
+    "fit": "fitting",
+    "FitOptions": "fitting",
+    # recover-and-select
+    "segment": "segmentation",
+    "Segmentation": "segmentation",
+    "SegmentOptions": "options",
+    # model selection: maximise m^T Q m
+    "select": "selection",
+    "build_q": "selection",
+    "SelectionWeights": "selection",
+    # range images and files
+    "RangeImage": "rangeimage",
+    "PinholeCamera": "rangeimage",
+    "read_range_image": "formats",
+    "read_points": "formats",
+    "read_segmentation": "export",
+    "write_segmentation": "export",
+    # scores, many scenes, start-up
+    "hoover": "evaluate",
+    "segment_many": "dataset",
+    "enable_compilation_cache": "cache",
 }
-_MODULES = ("evaluate", "plot", "rotation", "scenes")
 
-__all__ = sorted([*_NAMES, *_MODULES])  # pyright: ignore[reportUnsupportedDunderAll]  (the lazy names)
+__all__ = sorted(_NAMES)  # pyright: ignore[reportUnsupportedDunderAll]  (the lazy names)
 
 try:
     __version__ = version("sqjax")
@@ -68,7 +51,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 def __getattr__(name: str):
     if name in _NAMES:
         value = getattr(import_module(f".{_NAMES[name]}", __name__), name)
-    elif name in _MODULES:
+    elif not name.startswith("_") and find_spec(f"{__name__}.{name}") is not None:
         value = import_module(f".{name}", __name__)
     else:
         raise AttributeError(f"module 'sqjax' has no attribute {name!r}")
@@ -78,17 +61,3 @@ def __getattr__(name: str):
 
 def __dir__():
     return sorted({*globals(), *__all__})
-
-
-class _Package(types.ModuleType):
-    """Keeps `sqjax.segment` the function: importing the submodule `sqjax.segment` (which any
-    `from sqjax.segment import ...` does) would otherwise bind the module over it, as the eager
-    `from .segment import segment` used to undo."""
-
-    def __setattr__(self, name, value):
-        if isinstance(value, types.ModuleType) and name in _NAMES and value.__name__ == f"{__name__}.{name}":
-            value = getattr(value, name)
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package

@@ -7,24 +7,7 @@ fails (unreadable file, a bug) is reported in its row (`status="failed"`, `error
 the others go on. A second call with the same `out` skips the scenes whose marker matches (same input
 file size and modification time, same settings): `status="resumed"`, row read back from the marker.
 
-`summary.json`, schema version 1::
-
-    {"version": 1, "sqjax_version": str, "settings": {...},   # subsample, truth, options
-     "scenes": [row, ...]}                                    # in input order
-
-and `summary.csv` holds the same rows, one per line, columns `COLUMNS`. A row::
-
-    {"name": str,                  # output folder name (the input's stem, made unique)
-     "input": str | null,          # the path, null for arrays
-     "status": "done" | "resumed" | "failed",
-     "parts": int | null,          # parts found
-     "points": int | null,         # valid pixels / points segmented
-     "seconds": float | null,      # segment() total, s (= compile + run)
-     "compile_seconds", "run_seconds": float | null,   # s, from Segmentation.timings
-     "wall_seconds": float,        # read + segment + write, s
-     "truth_parts", "correct", "over", "under", "missed", "noise": int | null,
-                                   # Hoover et al. (1996) at T = 0.8 when the input has labels
-     "error": str | null}
+The summary's schema: `sqjax.summary`.
 
 With `workers=N` (a local cluster of N processes) or `scheduler=ADDRESS` (a running one), each scene is
 one Dask task; a worker is one long-lived process with one thread (`processes=True,
@@ -35,11 +18,9 @@ see (always true for a local cluster). Results come back as the same `SceneResul
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import glob
 import hashlib
-import io
 import json
 import os
 import time
@@ -49,30 +30,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from . import formats
+from .files import atomic_paths
+from .summary import COLUMNS, write_summary
+
 if TYPE_CHECKING:
-    from .segment import SegmentOptions
+    from .options import SegmentOptions
 
 MARKER = "done.json"
-COLUMNS = (
-    "name",
-    "input",
-    "status",
-    "parts",
-    "points",
-    "seconds",
-    "compile_seconds",
-    "run_seconds",
-    "wall_seconds",
-    "truth_parts",
-    "correct",
-    "over",
-    "under",
-    "missed",
-    "noise",
-    "error",
-)
-INPUT_EXTS = (".npz", ".npy", ".png", ".pcd", ".ply", ".xyz", ".txt", ".obj", ".stl")
-"""Extensions `expand_inputs` picks from a folder (those `sqjax segment` reads)."""
+INPUT_EXTS = formats.INPUT_EXTENSIONS
+"""Extensions `expand_inputs` picks from a folder (those `sqjax segment` reads: `formats.read_input`)."""
 
 
 @dataclasses.dataclass
@@ -142,9 +109,7 @@ def expand_inputs(specs: Iterable) -> list[Path]:
 def read_input(path):
     """Read `path` as `sqjax segment` does with no camera options: `(RangeImage, "range_image")` or
     `((P, 3) points, "point_cloud")`. Raises FileNotFoundError / ValueError naming the file."""
-    from .cli import load_input
-
-    return load_input(path)
+    return formats.read_input(path)
 
 
 def _names(items) -> list[str]:
@@ -228,14 +193,15 @@ def run_scene(item, name: str, cfg: _Config, fingerprint: str | None = None) -> 
     a failure comes back as a row with `status="failed"` and `error` naming the file (or the name)."""
     from .evaluate import hoover
     from .export import write_segmentation
-    from .segment import segment
+    from .segmentation import segment
 
     _configure_jax(cfg.cache_dir)
     t0 = time.perf_counter()
     where = str(os.fspath(item)) if _is_path(item) else name
     try:
         if _is_path(item):
-            data, kind = (cfg.read or read_input)(item)
+            reader: Callable[..., tuple[Any, str]] = cfg.read or read_input  # data as `kind` says
+            data, kind = reader(item)
         else:
             data = _data_of(item)
             kind = "range_image" if hasattr(data, "depth") else "point_cloud"
@@ -281,21 +247,12 @@ def run_scene(item, name: str, cfg: _Config, fingerprint: str | None = None) -> 
         row["wall_seconds"] = time.perf_counter() - t0
         if out_dir is not None:
             marker = {"version": 1, "fingerprint": fingerprint, "row": row}
-            _atomic(out_dir / MARKER, lambda f: f.write(json.dumps(marker, indent=1, default=float)))
+            with atomic_paths(out_dir / MARKER) as (tmp,):
+                tmp.write_text(json.dumps(marker, indent=1, default=float))
         return SceneResult(row, seg, out_dir)
     except Exception as e:  # noqa: BLE001 - one bad input must not stop the others
         row = _row(name, item, status="failed", error=_one_line(e, where), wall_seconds=time.perf_counter() - t0)
         return SceneResult(row, None, None if cfg.out is None else Path(cfg.out) / name)
-
-
-def _atomic(path: Path, write) -> Path:
-    """Write a text file through a temporary beside it and `os.replace`: readers see all or nothing."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", newline="") as f:
-        write(f)
-    os.replace(tmp, path)
-    return path
 
 
 def _resumed(item, name, out: Path, fingerprint: str | None) -> SceneResult | None:
@@ -342,7 +299,7 @@ def segment_many(
     - `truth`: maps an input's stored labels `(H, W)` to truth labels for the Hoover scores (e.g. mOSD's
       `label // 10`); None = the labels as stored. Must be picklable (a module-level function) for Dask.
     - `read`: `path -> (data, kind)` as `read_input` (its default); e.g. `functools.partial(
-      sqjax.cli.load_input, camera=...)`.
+      sqjax.formats.read_input, camera=...)`.
     - `figure`: also draw `figure.png` per scene (slow); `resume`: skip scenes whose marker matches.
     - `workers`: run on a local Dask cluster of this many single-threaded worker processes;
       `scheduler`: a scheduler address or a `distributed.Client` to run on instead.
@@ -352,9 +309,9 @@ def segment_many(
     **Returns:** one `SceneResult` per input, in input order.
     """
     from . import __version__
-    from .segment import SegmentOptions
+    from .options import SegmentOptions
 
-    opts = options if options is not None else SegmentOptions(**kw)
+    opts = options if options is not None else SegmentOptions.create(**kw)
     if int(subsample) < 1:
         raise ValueError(f"segment_many: subsample must be >= 1, got {subsample}")
     items = list(inputs)
@@ -362,7 +319,7 @@ def segment_many(
     settings = {
         "subsample": int(subsample),
         "truth": getattr(truth, "__name__", None if truth is None else repr(truth)),
-        "options": dataclasses.asdict(opts),
+        "options": opts.flat(),
     }
     out = None if out is None else Path(os.fspath(out))
     cfg = _Config(
@@ -459,83 +416,3 @@ class _bar:
 
 # ----------------------------------------------------------------------------------------------------
 # the summary
-
-
-def write_summary(results, out, *, settings: dict | None = None) -> tuple[Path, Path]:
-    """Write `out/summary.csv` and `out/summary.json` (module docstring) for a list of `SceneResult`s."""
-    out = Path(os.fspath(out))
-    out.mkdir(parents=True, exist_ok=True)
-    rows = [r.row for r in results if r is not None]
-    doc = {"version": 1, "settings": settings or {}, "scenes": rows}
-    j = _atomic(out / "summary.json", lambda f: f.write(json.dumps(doc, indent=1, default=float)))
-
-    def write_csv(f):
-        w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(
-            {k: ("" if v is None else f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows
-        )
-
-    c = _atomic(out / "summary.csv", write_csv)
-    return c, j
-
-
-def summary_table(results) -> str:
-    """The rows as aligned text: name, status, parts, seconds, Hoover correct / truth, error."""
-    buf = io.StringIO()
-    buf.write(f"{'scene':24s} {'status':8s} {'parts':>5s} {'run s':>7s} {'compile s':>9s} {'correct':>8s}  error\n")
-    for r in (res.row for res in results):
-        num = lambda k, f: "-" if r.get(k) is None else format(r[k], f)  # noqa: B023  (used within the iteration)
-        corr = "-" if r.get("correct") is None else f"{r['correct']}/{r['truth_parts']}"
-        buf.write(
-            f"{r['name'][:24]:24s} {r['status']:8s} {num('parts', 'd'):>5s} {num('run_seconds', '.2f'):>7s} "
-            f"{num('compile_seconds', '.1f'):>9s} {corr:>8s}  {r.get('error') or ''}\n"
-        )
-    return buf.getvalue()
-
-
-# ----------------------------------------------------------------------------------------------------
-# `sqjax segment FILE... | DIR | GLOB [--workers N | --scheduler ADDRESS]`
-
-
-def wants_many(args) -> bool:
-    """True when `sqjax segment` was given several inputs, a folder, a glob or a cluster."""
-    return (
-        len(args.input) > 1
-        or bool(args.workers or args.scheduler)
-        or Path(args.input[0]).is_dir()
-        or (glob.has_magic(args.input[0]) and not Path(args.input[0]).exists())
-    )
-
-
-def cli_segment_many(args) -> int:
-    """`sqjax segment` over many inputs: results under `--out` (default ./sqjax-many), the summary table
-    printed; exit status 1 when an input failed (each reported on stderr), else 0."""
-    import functools
-    import sys
-
-    from .cli import _segment_options, load_input
-
-    paths = expand_inputs(args.input)
-    read = functools.partial(load_input, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale)
-    out = Path(args.out) if args.out else Path("sqjax-many")
-    results = segment_many(
-        paths,
-        out,
-        options=dataclasses.replace(_segment_options(args.option, args.noise), subsample=args.subsample),
-        read=read,
-        figure=not args.no_figure,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        progress=False if args.quiet else None,
-    )
-    failed = [r for r in results if r.status == "failed"]
-    for r in failed:
-        print(f"sqjax: error: {r.error}", file=sys.stderr)  # noqa: T201  (CLI output)
-    if not args.quiet:
-        print(summary_table(results), end="")  # noqa: T201  (CLI output)
-        print(  # noqa: T201  (CLI output)
-            f"wrote {out}{os.sep}: {len(results) - len(failed)} of {len(results)} scenes "
-            f"({sum(r.status == 'resumed' for r in results)} already done), summary.csv, summary.json"
-        )
-    return 1 if failed else 0

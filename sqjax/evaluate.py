@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .padding import bucket
 from .superquadric import Superquadric, contains, distance
 
 # ----------------------------------------------------------------------------------------------------
@@ -202,9 +203,6 @@ def volume_iou(a: Superquadric, b: Superquadric, *, n: int = 100_000, seed: int 
 # explained pixels
 
 
-_distance = jax.jit(distance)
-
-
 def model_distances(points, labels, models) -> np.ndarray:
     """(H, W) distance (eq. 10) of each pixel's point to the model of its label (label i + 1 = models[i]).
 
@@ -216,9 +214,9 @@ def model_distances(points, labels, models) -> np.ndarray:
         sel = (labels == i + 1) & np.isfinite(points).all(-1)
         n = int(sel.sum())
         if n:  # padded to a power of two so that few shapes are ever compiled
-            pts = np.broadcast_to(np.asarray(sq.translation, float), (max(256, 1 << (n - 1).bit_length()), 3)).copy()
+            pts = np.broadcast_to(np.asarray(sq.translation, float), (bucket(n, 256), 3)).copy()
             pts[:n] = points[sel]
-            out[sel] = np.asarray(_distance(sq, jnp.asarray(pts, sq.size.dtype)), float)[:n]
+            out[sel] = np.asarray(distance(sq, jnp.asarray(pts, sq.size.dtype)), float)[:n]
     return out
 
 

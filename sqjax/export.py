@@ -1,7 +1,5 @@
 """Writing results: label images, part meshes, `models.json` (host side: numpy, pillow, trimesh).
 
-No matplotlib here: the palette `label_colors` is shared by `labels.png`, the meshes and `sqjax.plot`.
-
 Frames: `models.json`, `labels.npy` and `parts.ply` are in the camera frame of the input (x right,
 y down, z forward). `parts.glb` is glTF, which is Y-up with the viewer on +z: its nodes are the camera
 frame turned 180 degrees about x, (x, y, z) -> (x, -y, -z), so scenes open upright in glTF viewers.
@@ -45,104 +43,22 @@ folder back.
 
 from __future__ import annotations
 
-import colorsys
-import contextlib
 import dataclasses
 import errno
 import json
 import os
-import re
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+
+from .colors import UNEXPLAINED, label_colors, labels_to_id_png, labels_to_png
+from .files import check_writable_dir, dumps, jsonable, write_error
 
 SCHEMA_VERSION = 1
 
 # Distinct, colour-blind-aware first colours (Okabe-Ito and Tableau), then golden-angle hues.
-_BASE = np.array(
-    [
-        (230, 159, 0),
-        (86, 180, 233),
-        (0, 158, 115),
-        (213, 94, 0),
-        (204, 121, 167),
-        (0, 114, 178),
-        (240, 228, 66),
-        (148, 103, 189),
-        (140, 86, 75),
-        (188, 189, 34),
-        (23, 190, 207),
-        (255, 127, 14),
-        (44, 160, 44),
-        (214, 39, 40),
-        (127, 127, 127),
-        (31, 119, 180),
-    ],
-    np.uint8,
-)
-BACKGROUND = (0, 0, 0)
-"""labels.png colour of pixels without data."""
-UNEXPLAINED = (96, 96, 96)
-"""labels.png colour of valid pixels that no part explains (label 0)."""
-
-
-def label_colors(n: int) -> np.ndarray:
-    """`(n, 3)` uint8 RGB colours of parts 1..n (row i is label i + 1); the same for every n (a prefix)."""
-    n = int(n)
-    if n < 0:
-        raise ValueError(f"label_colors: n must be >= 0, got {n}")
-    if n <= len(_BASE):
-        return _BASE[:n].copy()
-    extra = []
-    for k in range(n - len(_BASE)):
-        h = (0.11 + 0.618033988749895 * k) % 1.0
-        s, v = (0.65, 0.95) if k % 2 == 0 else (0.9, 0.7)
-        extra.append([round(255 * c) for c in colorsys.hsv_to_rgb(h, s, v)])
-    return np.concatenate([_BASE, np.asarray(extra, np.uint8)])
-
-
-def colorize_labels(labels, valid=None) -> np.ndarray:
-    """Label image `(H, W)` int (0 = none) -> `(H, W, 3)` uint8 RGB with `label_colors`.
-
-    Label 0 is `BACKGROUND` (black), or `UNEXPLAINED` (grey) where `valid` `(H, W)` bool is True.
-    """
-    labels = np.asarray(labels)
-    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer):
-        raise ValueError(f"colorize_labels: labels must be an (H, W) integer array, got {labels.dtype} {labels.shape}")
-    if labels.size and labels.min() < 0:
-        raise ValueError("colorize_labels: labels must be >= 0")
-    n = int(labels.max()) if labels.size else 0
-    lut = np.concatenate([np.array([BACKGROUND], np.uint8), label_colors(n)])
-    rgb = lut[labels]
-    if valid is not None:
-        rgb[(labels == 0) & np.asarray(valid, bool)] = UNEXPLAINED
-    return rgb
-
-
-def labels_to_png(labels, path, valid=None) -> Path:
-    """Write a label image `(H, W)` as an RGB PNG coloured by `label_colors` (see `colorize_labels`)."""
-    from PIL import Image
-
-    path = Path(path)
-    Image.fromarray(colorize_labels(labels, valid)).save(path, format="PNG")
-    return path
-
-
-def labels_to_id_png(labels, path) -> Path:
-    """Write a label image `(H, W)` as a 16-bit greyscale PNG of the label ids (0 = unlabelled)."""
-    from PIL import Image
-
-    labels = np.asarray(labels)
-    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer):
-        raise ValueError(f"{path}: labels must be an (H, W) integer array, got {labels.dtype} {labels.shape}")
-    if labels.size and (labels.min() < 0 or labels.max() > 65535):
-        raise ValueError(f"{path}: label ids must lie in 0..65535 for a 16-bit PNG")
-    path = Path(path)
-    Image.fromarray(labels.astype(np.uint16)).save(path, format="PNG")
-    return path
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -153,28 +69,17 @@ def _superquadric(part):
     return getattr(part, "superquadric", part)
 
 
-def unbatch(sq) -> list:
-    """A batched `Superquadric` (fields `(K, ...)`) -> list of K single ones; a single one -> [it]."""
-    import jax
-
-    if np.ndim(sq.size) == 1:
-        return [sq]
-    if np.ndim(sq.size) != 2:
-        raise ValueError(f"unbatch: expected one batch axis, got size of shape {np.shape(sq.size)}")
-    return [jax.tree_util.tree_map(lambda x, i=i: x[i], sq) for i in range(np.shape(sq.size)[0])]
-
-
 def _as_list(parts) -> list:
     """Parts, Superquadrics, or one batched Superquadric -> list of single Superquadric-likes."""
-    if hasattr(parts, "size") and hasattr(parts, "epsilon") and not isinstance(parts, (list, tuple)):
-        return unbatch(parts)
+    if hasattr(parts, "unbatch") and not isinstance(parts, (list, tuple)):
+        return parts.unbatch()
     return [_superquadric(p) for p in parts]
 
 
 def part_meshes(parts, resolution: int = 32) -> list:
     """One `trimesh.Trimesh` per part (`segment.Part`s, `Superquadric`s, or one batched `Superquadric`),
     vertex-coloured by `label_colors` in the order given."""
-    from .superquadric import to_trimesh
+    from .mesh import to_trimesh
 
     parts = _as_list(parts)
     colors = label_colors(len(parts))
@@ -249,24 +154,9 @@ def labelled_points_to_ply(points, labels, path) -> Path:
 # JSON
 
 
-def _jsonable(v) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (np.generic, np.ndarray)) or hasattr(v, "__array__"):
-        a = np.asarray(v)
-        return _jsonable(a.tolist()) if a.ndim else _jsonable(a.item())
-    if isinstance(v, float) and not np.isfinite(v):
-        return None
-    if isinstance(v, Path):
-        return str(v)
-    return v
-
-
 def superquadric_dict(sq) -> dict:
     """JSON-ready parameters of one superquadric: size, epsilon, rotation, euler_zyz, translation, taper, bend."""
-    return _jsonable(sq.to_dict())
+    return jsonable(sq.to_dict())
 
 
 def segmentation_dict(seg, image=None, *, input_path=None, input_shape=None, settings=None) -> dict:
@@ -311,7 +201,7 @@ def segmentation_dict(seg, image=None, *, input_path=None, input_shape=None, set
         "stats": dict(seg.stats),
         "parts": parts,
     }
-    return _jsonable(doc)
+    return jsonable(doc)
 
 
 def fit_dict(result, *, input_path=None) -> dict:
@@ -321,7 +211,7 @@ def fit_dict(result, *, input_path=None) -> dict:
     n = int(np.asarray(result.num_points))
     cost = float(np.asarray(result.cost))
     dist = np.asarray(result.distance, float)
-    return _jsonable(
+    return jsonable(
         {
             "version": SCHEMA_VERSION,
             "sqjax_version": __version__,
@@ -335,159 +225,12 @@ def fit_dict(result, *, input_path=None) -> dict:
     )
 
 
-_NUMBERS = r"-?[0-9][0-9.eE+-]*|null|true|false"
-_FLAT_LIST = re.compile(rf"\[\s*((?:{_NUMBERS})(?:,\s*(?:{_NUMBERS}))*)\s*\]")
-_NESTED_LIST = re.compile(r"\[\s*(\[[^\[\]\n]*\](?:,\s*\[[^\[\]\n]*\])*)\s*\]")
-
-
-def dumps(doc) -> str:
-    """JSON text, indented, with short lists of numbers (sizes, 3 x 3 rotations) kept on one line."""
-    doc = _jsonable(doc)
-    plain = json.dumps(doc, indent=2, allow_nan=False)
-    text = _FLAT_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", plain)
-    text = _NESTED_LIST.sub(lambda m: "[" + ", ".join(re.findall(r"\[[^\[\]]*\]", m.group(1))) + "]", text)
-    return text if json.loads(text) == doc else plain  # a string that looked like a list: keep it as it was
-
-
-def write_json(doc: dict, path) -> Path:
-    """Write `doc` as JSON (`dumps`) to `path`, atomically (`atomic_paths`); returns the path."""
-    path = Path(os.fspath(path))
-    text = dumps(doc) + "\n"
-    with atomic_paths(path) as (tmp,):
-        tmp.write_text(text)
-    return path
-
-
 # ----------------------------------------------------------------------------------------------------
 # safe writing: temporaries beside the targets, renamed into place
 
 
-def _write_error(path, e: OSError) -> OSError:
-    """An OSError whose message names `path` (the caller's target, not a temporary)."""
-    return (
-        OSError(e.errno, f"{path}: cannot write ({e.strerror or type(e).__name__})")
-        if e.errno
-        else OSError(f"{path}: cannot write ({e})")
-    )
-
-
-def check_writable_dir(path) -> Path:
-    """Create folder `path` if needed and prove it writable by creating (and removing) a temporary
-    folder in it; raises OSError naming `path` otherwise. Call before long work."""
-    path = Path(os.fspath(path))
-    if os.path.lexists(path) and not path.is_dir():
-        raise NotADirectoryError(errno.ENOTDIR, f"{path}: exists and is not a folder")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=".sqjax-check-", dir=path))
-    except OSError as e:
-        raise _write_error(path, e) from None
-    return path
-
-
-def check_writable_file(path) -> Path:
-    """Prove that file `path` can be written (its folder exists and takes a new file; `path` is not a
-    folder), without touching `path` itself; raises OSError naming `path`."""
-    path = Path(os.fspath(path))
-    if path.is_dir():
-        raise IsADirectoryError(errno.EISDIR, f"{path}: is a folder, expected a file name")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise FileNotFoundError(errno.ENOENT, f"{path}: folder {parent} does not exist")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".check", dir=parent)
-        os.close(fd)
-        os.unlink(tmp)
-    except OSError as e:
-        raise _write_error(path, e) from None
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-@contextlib.contextmanager
-def atomic_paths(*paths):
-    """Yield one temporary path per target (same folder, same extension, created exclusively); on
-    success each is renamed onto its target with `os.replace` (a symlink at the target is replaced,
-    never followed), on failure all are removed and no target is touched."""
-    targets = [Path(os.fspath(p)) for p in paths]
-    tmps = []
-    try:
-        for t in targets:
-            if t.is_dir() and not t.is_symlink():
-                raise IsADirectoryError(errno.EISDIR, f"{t}: is a folder, expected a file name")
-            try:
-                fd, tmp = tempfile.mkstemp(
-                    prefix=f".{t.name}.", suffix=t.suffix, dir=t.parent if str(t.parent) else "."
-                )
-            except OSError as e:
-                raise _write_error(t, e) from None
-            os.close(fd)
-            tmps.append(Path(tmp))
-            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
-        try:
-            yield tuple(tmps)
-        except OSError as e:
-            bad = getattr(e, "filename", None)
-            named = {str(tmp): t for tmp, t in zip(tmps, targets)}
-            if bad is not None and str(bad) in named:
-                raise _write_error(named[str(bad)], e) from None
-            raise
-        for tmp, t in zip(tmps, targets):
-            try:
-                os.replace(tmp, t)
-            except OSError as e:
-                raise _write_error(t, e) from None
-    finally:
-        for tmp in tmps:
-            with contextlib.suppress(OSError):
-                tmp.unlink()
-
-
 # ----------------------------------------------------------------------------------------------------
 # reading results back
-
-
-def superquadric_from_dict(d: dict):
-    """A `Superquadric` from one entry of `models.json` `parts` (or `Superquadric.to_dict()` / `sqjax fit
-    --json` output): `size`, `epsilon`, `rotation` (else `euler_zyz`), `translation`, `taper`, `bend`;
-    other keys (label, colour, error, ...) are ignored."""
-    from .superquadric import Superquadric
-
-    if not isinstance(d, dict):
-        raise ValueError(f"a superquadric must be a JSON object, got {type(d).__name__}")
-    if "size" not in d:
-        raise ValueError(f"a superquadric needs 'size' (keys: {', '.join(sorted(d)) or 'none'})")
-    try:
-        arr = {
-            k: np.asarray(d[k], np.float64)
-            for k in ("size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend")
-            if d.get(k) is not None
-        }
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"a superquadric's parameters must be numbers ({e})") from None
-    shapes = {
-        "size": (3,),
-        "epsilon": (2,),
-        "rotation": (3, 3),
-        "euler_zyz": (3,),
-        "translation": (3,),
-        "taper": (2,),
-        "bend": (2,),
-    }
-    for k, v in arr.items():
-        if v.shape != shapes[k] or not np.isfinite(v).all():
-            raise ValueError(f"superquadric '{k}' must be {shapes[k]} finite numbers, got {d[k]!r}")
-    kw = {k: arr[k] for k in ("epsilon", "translation", "taper", "bend") if k in arr}
-    if "rotation" in arr:
-        kw["rotation"] = arr["rotation"]
-    elif "euler_zyz" in arr:
-        kw["euler"] = arr["euler_zyz"]
-    return Superquadric.create(arr["size"], **kw)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -536,6 +279,7 @@ def read_segmentation(out_dir) -> SavedSegmentation:
     Raises FileNotFoundError / ValueError naming the file at fault.
     """
     from .rangeimage import camera_from_dict
+    from .superquadric import Superquadric
 
     out = Path(os.fspath(out_dir))
     if not out.is_dir():
@@ -544,7 +288,7 @@ def read_segmentation(out_dir) -> SavedSegmentation:
     sqs = []
     for i, p in enumerate(doc.get("parts", [])):
         try:
-            sqs.append(superquadric_from_dict(p))
+            sqs.append(Superquadric.from_dict(p))
         except ValueError as e:
             raise ValueError(f"{out / 'models.json'}: part {i + 1}: {e}") from None
     labels = None
@@ -636,14 +380,14 @@ def write_segmentation(
             try:
                 os.replace(stage / name, out / name)
             except OSError as e:
-                raise _write_error(out / name, e) from None
+                raise write_error(out / name, e) from None
             written[name] = out / name
         for name in OUTPUT_NAMES:
             if name not in written and os.path.lexists(out / name) and not (out / name).is_dir():
                 (out / name).unlink()  # left by an earlier run: would not match (a symlink: the link goes)
     except OSError as e:
         if e.filename is not None and str(stage) in str(e.filename):
-            raise _write_error(out / Path(e.filename).name, e) from None
+            raise write_error(out / Path(e.filename).name, e) from None
         raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)

@@ -2,7 +2,7 @@
 
 matplotlib is imported inside the functions only, so `import sqjax` never needs it; figures are built
 with `matplotlib.figure.Figure` (no pyplot state, any backend). Colours come from
-`sqjax.export.label_colors`, the palette of `labels.png` and the exported meshes.
+`sqjax.colors.label_colors`, the palette of `labels.png` and the exported meshes.
 
 Model panels of range images are drawn as images: the selected superquadrics are ray cast with the
 image's own camera (`sqjax.scenes.render`) and shaded by their surface normals, over the data pixels in
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .export import colorize_labels, label_colors
+from .colors import colorize_labels, label_colors
 
 _DATA_GREY = 0.86
 _EMPTY = 1.0
@@ -47,7 +47,7 @@ def _shade(points: np.ndarray, orthographic: bool) -> np.ndarray:
 def _cast_models(sqs, camera, shape, resolution):
     """Ray cast superquadrics: (labels (H, W) int32, shading (H, W) in [0, 1])."""
     from .rangeimage import OrthographicCamera
-    from .scenes import render
+    from .raycast import render
 
     if not sqs:
         return np.zeros(shape, np.int32), np.ones(shape)
@@ -138,7 +138,7 @@ def draw_superquadrics(ax, models, colors=None, *, resolution: int = 20, alpha: 
     y-up view (as `figure_sequence` does); `"world"` plots x, y, z as they are."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from .superquadric import to_trimesh
+    from .mesh import to_trimesh
 
     sqs = _superquadrics(models)
     colors = label_colors(len(sqs)) if colors is None else np.asarray(colors)
@@ -185,7 +185,7 @@ def plot_fit(points, fitted, truth=None, *, ax=None, resolution: int = 20):
     """
     from matplotlib.figure import Figure
 
-    from .superquadric import surface_grid
+    from .mesh import surface_grid
 
     if ax is None:
         ax = Figure(figsize=(5, 5)).add_subplot(projection="3d")

@@ -10,9 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-
-def _eps(dtype) -> float:
-    return 1e-5 if jnp.dtype(dtype) == jnp.float32 else 1e-10
+from .numerics import eps
 
 
 def skew(w):
@@ -32,7 +30,7 @@ def skew(w):
 def exp(w):
     """Rotation vector (..., 3) [rad] -> rotation matrix (..., 3, 3) (Rodrigues)."""
     t2 = jnp.sum(w * w, -1)[..., None, None]
-    small = t2 < _eps(w.dtype)
+    small = t2 < eps("rotation", w.dtype)
     t2s = jnp.where(small, 1.0, t2)
     t = jnp.sqrt(t2s)
     a = jnp.where(small, 1.0 - t2 / 6.0, jnp.sin(t) / t)
@@ -98,7 +96,7 @@ def log(R):
     q = _quaternion(R)
     w, v = q[..., 0], q[..., 1:]
     n2 = jnp.sum(v * v, -1)
-    small = n2 < _eps(R.dtype)
+    small = n2 < eps("rotation", R.dtype)
     n = jnp.sqrt(jnp.where(small, 1.0, n2))
     ws = jnp.where(small, w, 1.0)  # w ~ 1 on the Taylor branch; never 0 there
     taylor = 2.0 / ws - 2.0 * n2 / (3.0 * ws**3)
@@ -135,7 +133,7 @@ def to_euler(R):
     (zero for psi at the lock, where the angles are not differentiable).
     """
     s2 = R[..., 0, 2] ** 2 + R[..., 1, 2] ** 2
-    lock = s2 < _eps(R.dtype) ** 2
+    lock = s2 < eps("rotation", R.dtype) ** 2
     s = jnp.where(lock, 0.0, jnp.sqrt(jnp.where(lock, 1.0, s2)))
     theta = jnp.arctan2(s, R[..., 2, 2])
     safe = lambda x: jnp.where(lock, 1.0, x)

@@ -1,27 +1,18 @@
-"""Labelled synthetic range images by ray casting superquadrics and meshes (host side, numpy + trimesh).
+"""Labelled synthetic scenes with their true superquadrics, rendered by `raycast.render` (host side).
 
-`render` casts one ray per pixel into the union of the parts and keeps the nearest hit: depth (z of the
-hit, NaN where nothing is hit) and a label image (0 background, i + 1 for part i). Superquadric hits are
-moved from the triangle mesh onto the exact surface F = 1 (eq. 5) by bisection along the ray, so every
-valid pixel back-projects onto its part. `paper_scene` rebuilds the three scenes of the paper's figures;
-`random_scene` draws seeded scenes of separate, touching, intersecting or occluding parts.
+`paper_scene` rebuilds the three scenes of the paper's figures; `random_scene` draws seeded scenes of
+separate, touching, intersecting or occluding parts; `multipart_scene` draws multi-part objects (tables,
+chairs, mugs, lamps, L-shapes, dumbbells, arms) with one label per part, seen from random views.
 """
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
-from .superquadric import (
-    Superquadric,
-    log_inside_outside_local,
-    sample_surface,
-    surface_grid,
-    to_model_frame,
-    to_trimesh,
-)
+from .mesh import sample_surface, surface_grid
+from .rangeimage import PinholeCamera
+from .raycast import cast, meshes_of, render, render_meshes, world_log_f
+from .superquadric import Superquadric
 
 PAPER_SCENES = ("sphere_cylinder", "two_cylinders", "occluded_block")
 ARRANGEMENTS = ("separate", "touching", "intersecting", "occluding", "mixed")
@@ -35,149 +26,6 @@ def default_camera(shape=(120, 160)) -> PinholeCamera:
 
 # ----------------------------------------------------------------------------------------------------
 # ray casting
-
-
-def _intersector(mesh):
-    try:
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
-    except ImportError:  # no embreex: the pure numpy caster (slower, same answers)
-        from trimesh.ray.ray_triangle import RayMeshIntersector
-    return RayMeshIntersector(mesh)
-
-
-@jax.jit
-def _log_F_deformed(sq: Superquadric, pts):
-    return log_inside_outside_local(to_model_frame(sq, pts.astype(sq.size.dtype)), jnp.log(sq.size), sq.epsilon)
-
-
-def _log_F_np(size, epsilon, rotation, centre, pts: np.ndarray) -> np.ndarray:
-    """log F (eq. 5) of world points (n, 3) for an undeformed model, float64 numpy."""
-    (e1, e2), x = epsilon, (pts - centre) @ rotation
-    la = np.log(np.maximum(np.abs(x), 1e-300)) - np.log(size)
-    s = np.logaddexp(la[:, 0] * (2 / e2), la[:, 1] * (2 / e2))
-    return e1 * np.logaddexp(s * (e2 / e1), la[:, 2] * (2 / e1))
-
-
-def _log_F(sq: Superquadric, pts: np.ndarray) -> np.ndarray:
-    """log F of world points (n, 3) -> (n,), float64 numpy for undeformed models, sqjax's kernel otherwise."""
-    if np.any(np.asarray(sq.taper) != 0) or np.any(np.asarray(sq.bend)[..., 0] != 0):
-        n = len(pts)
-        pad = np.zeros((max(256, 1 << (n - 1).bit_length()) - n, 3))  # few buckets: few compilations
-        return np.asarray(_log_F_deformed(sq, np.concatenate([pts, pad + np.asarray(sq.translation)])), float)[:n]
-    return _log_F_np(*(np.asarray(v, float) for v in (sq.size, sq.epsilon, sq.rotation, sq.translation)), pts=pts)
-
-
-def _refine(sq: Superquadric, o: np.ndarray, d: np.ndarray, t0: np.ndarray, iters: int = 48) -> np.ndarray:
-    """Move mesh hits t0 along rays o + t d onto the surface F = 1 (bisection); unbracketed hits are kept."""
-    g = lambda t: _log_F(sq, o + t[:, None] * d)
-    step = 1e-3 * float(np.min(np.asarray(sq.size)))
-    inside = g(t0) <= 0  # a convex model's mesh is inscribed: its hits lie just inside the solid
-    lo, hi = np.where(inside, t0 - step, t0), np.where(inside, t0, t0 + step)
-    ok = np.zeros(len(t0), bool)
-    for k in range(12):  # widen the bracket until log F changes sign across it
-        ok = (g(lo) > 0) & (g(hi) <= 0)
-        if ok.all():
-            break
-        grow = step * 2.0 ** (k + 1)
-        lo, hi = np.where(ok | ~inside, lo, t0 - grow), np.where(ok | inside, hi, t0 + grow)
-    for _ in range(iters):
-        mid = 0.5 * (lo + hi)
-        out = g(mid) > 0
-        lo, hi = np.where(out, mid, lo), np.where(out, hi, mid)
-    return np.where(ok, 0.5 * (lo + hi), t0)
-
-
-def _rays(camera, shape):
-    """Per-pixel rays o + t d (n, 3) with o_z = 0 and d_z = 1, so that t is the depth (z) of a point."""
-    h, w = shape
-    if isinstance(camera, PinholeCamera):
-        d = camera.rays(shape).reshape(-1, 3)
-        return np.zeros_like(d), d
-    o = camera.back_project(np.zeros(shape)).reshape(-1, 3)
-    d = np.zeros((h * w, 3))
-    d[:, 2] = 1.0
-    return o, d
-
-
-def _meshes(parts, resolution: int):
-    return [p if not isinstance(p, Superquadric) else to_trimesh(p, resolution) for p in parts]
-
-
-def _cast(meshes, camera, shape):
-    """Nearest hits: (depth (H, W) float64 NaN where none, labels (H, W) int32, ray origins, directions)."""
-    import trimesh
-
-    verts = [np.asarray(m.vertices, float) for m in meshes]
-    offsets = np.cumsum([0] + [len(v) for v in verts])[:-1]
-    faces = np.concatenate([np.asarray(m.faces) + off for m, off in zip(meshes, offsets)])
-    owner = np.repeat(np.arange(len(meshes), dtype=np.int32), [len(m.faces) for m in meshes])
-    scene = trimesh.Trimesh(np.concatenate(verts), faces, process=False)
-    if not isinstance(camera, (PinholeCamera, OrthographicCamera)):
-        raise TypeError(f"render: unsupported camera {type(camera).__name__}")
-    o, d = _rays(camera, shape)
-    start = o.copy()
-    if isinstance(camera, OrthographicCamera):  # parallel rays start in front of every part
-        start[:, 2] = float(scene.bounds[0, 2]) - 0.1 * float(np.ptp(scene.bounds[:, 2])) - 1e-3
-    tri = _intersector(scene).intersects_first(start, d)
-    depth = np.full(len(o), np.nan)
-    hit = tri >= 0
-    v0, n = scene.triangles[tri[hit], 0], scene.face_normals[tri[hit]]
-    depth[hit] = np.einsum("ij,ij->i", n, v0 - o[hit]) / np.einsum("ij,ij->i", n, d[hit])  # plane-line, d_z = 1
-    labels = np.zeros(len(o), np.int32)
-    labels[hit] = owner[tri[hit]] + 1
-    return depth, labels, o, d
-
-
-def _render(parts, meshes, camera, shape, *, noise, dropout, seed, refine=True) -> RangeImage:
-    shape = tuple(int(s) for s in shape)
-    depth, labels, o, d = _cast(meshes, camera, shape)
-    if refine:
-        for i, p in enumerate(parts):
-            sel = np.nonzero(labels == i + 1)[0]
-            if isinstance(p, Superquadric) and len(sel):
-                depth[sel] = _refine(p, o[sel], d[sel], depth[sel])
-    depth, labels = depth.reshape(shape), labels.reshape(shape)
-    rng = np.random.default_rng(seed)
-    if noise > 0:
-        depth = depth + noise * rng.standard_normal(shape)
-    if dropout > 0:
-        idx = np.flatnonzero(labels)
-        drop = rng.choice(idx, int(round(dropout * len(idx))), replace=False)
-        depth.flat[drop], labels.flat[drop] = np.nan, 0
-    return RangeImage(depth.astype(np.float32), camera, labels)
-
-
-def render(
-    parts,
-    camera,
-    shape,
-    *,
-    noise: float = 0.0,
-    dropout: float = 0.0,
-    seed: int = 0,
-    resolution: int = 64,
-    refine: bool = True,
-) -> RangeImage:
-    """Ray-cast a range image of `parts` (list of `Superquadric` and/or `trimesh.Trimesh`, camera frame).
-
-    **Arguments:**
-    - `camera`: `PinholeCamera` (rays from the origin through the pixel centres) or `OrthographicCamera`
-      (rays along +z from in front of all parts). `shape`: (H, W).
-    - `noise`: std of Gaussian noise added to the depth (depth units); `dropout`: fraction of the valid
-      pixels made missing (depth NaN, label 0); both drawn from `numpy.random.default_rng(seed)`.
-    - `resolution`: mesh resolution of the superquadrics; `refine`: move their hits onto F = 1 exactly.
-
-    **Returns:** `RangeImage` with depth = z of the nearest hit (NaN where none) and labels (H, W) int32:
-    0 background, i + 1 where part i is the nearest surface.
-    """
-    parts = list(parts)
-    if not parts:
-        raise ValueError("render: no parts to render")
-    if not 0.0 <= dropout <= 1.0 or noise < 0:
-        raise ValueError(f"render: need noise >= 0 and dropout in [0, 1], got {noise}, {dropout}")
-    return _render(
-        parts, _meshes(parts, resolution), camera, shape, noise=noise, dropout=dropout, seed=seed, refine=refine
-    )
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -281,7 +129,7 @@ class _Body:
         self.centre = np.zeros(3)
 
     def log_F(self, centre, pts):
-        return _log_F_np(self.size, self.epsilon, self.rotation, centre, pts)
+        return world_log_f(self.size, self.epsilon, self.rotation, centre, pts)
 
     def at(self, c) -> Superquadric:
         return Superquadric.create(self.size, self.epsilon, rotation=self.rotation, translation=c)
@@ -389,10 +237,12 @@ def random_scene(
         if len(placed) < n:
             continue
         parts = [b.at(b.centre) for b in placed]
-        meshes = _meshes(parts, 64)
-        _, labels, _, _ = _cast(meshes, camera, shape)
+        meshes = meshes_of(parts, 64)
+        _, labels, _, _ = cast(meshes, camera, shape)
         if np.bincount(labels, minlength=n + 1)[1:].min() >= min_pixels:
-            image = _render(parts, meshes, camera, shape, noise=noise, dropout=dropout, seed=int(rng.integers(2**31)))
+            image = render_meshes(
+                parts, meshes, camera, shape, noise=noise, dropout=dropout, seed=int(rng.integers(2**31))
+            )
             return image, parts
     raise RuntimeError(f"random_scene: no scene with every part visible in {max_tries} tries (seed {seed})")
 

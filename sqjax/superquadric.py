@@ -1,11 +1,15 @@
-"""The superquadric: parameters, inside-outside function (eq. 5), residual (eq. 7), distances (eq. 10).
+"""The superquadric of the paper (section 2): parameters, the inside-outside function F (eq. 5), the
+size-weighted residual (eq. 7) and the distance to the surface (eq. 10).
 
-Every function here is pure `jax.numpy` for one superquadric and points of shape `(..., 3)`; use
-`jax.vmap` for batches. Powers `|x / a| ** (2 / e)` are evaluated in the log domain,
-`exp((2 / e) * (log|x| - log a))`, with `log|x|` taken of a safe operand (|x| floored at 1e-10 a in
-float32, 1e-20 a in float64), so values and gradients are finite for every finite input (at the centre,
-on the axes, far away, e down to 0.1). The public functions are jitted: called eagerly, each compiles
-once per input shape (not once per primitive), and inside another jit they are inlined.
+One core computes log F from the model-frame coordinates as two log-sum-exps (`_log_f_terms`); the
+value (`log_inside_outside`), its gradient in closed form (`log_inside_outside_and_gradient`), eq. 7,
+eq. 10 and the signed distance the fitter minimises are all built on it. Powers `|x / a| ** (2 / e)`
+are evaluated in the log domain, `exp((2 / e) * (log|x| - log a))`, with `log|x|` taken of a safe
+operand (|x| floored at a tiny fraction of a, `numerics.eps("ratio")`), so values and gradients are
+finite for every finite input (at the centre, on the axes, far away, e down to 0.1). The public
+functions of a `Superquadric` are jitted: called eagerly, each compiles once per input shape, and
+inside another jit they are inlined. The core also runs in numpy (`xp=np`, float64) for the scene
+renderer.
 """
 
 from __future__ import annotations
@@ -16,18 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
+from .deformation import bend_points, taper_points, unbend, untaper
+from .numerics import eps
 
 EPSILON_RANGE = (0.1, 1.9)
 """Range the shape exponents e1, e2 are kept in."""
-
-
-def _tiny(dtype):
-    return jnp.finfo(dtype).tiny
-
-
-def _log_cap(dtype):
-    # F is capped at exp(cap): far beyond any data (|x / a| ~ 1e4 in float32) yet f**2 cannot overflow.
-    return 20.0 if jnp.dtype(dtype) == jnp.float32 else 60.0
 
 
 def _check_fields(**fields):
@@ -147,82 +144,55 @@ class Superquadric(eqx.Module):
             "bend": np.asarray(self.bend, float).tolist(),
         }
 
+    def __getitem__(self, index) -> Superquadric:
+        """The superquadric(s) at `index` of a batch (every field indexed along its leading axes)."""
+        return jax.tree.map(lambda v: v[index], self)
 
-# ----------------------------------------------------------------------------------------------------
-# deformations (model frame)
+    def unbatch(self) -> list[Superquadric]:
+        """A batched superquadric (fields `(K, ...)`) -> K single ones (one transfer to the host, then
+        slices); a single one -> [it]."""
+        if np.ndim(self.size) == 1:
+            return [self]
+        if np.ndim(self.size) != 2:
+            raise ValueError(f"Superquadric.unbatch: expected one batch axis, got size of shape {np.shape(self.size)}")
+        host = jax.tree.map(np.asarray, self)
+        return [jax.tree.map(lambda v, i=i: jnp.asarray(v[i]), host) for i in range(host.size.shape[0])]
 
-
-def _safe_div(num, den):
-    tiny = 1e-6 if den.dtype == jnp.float32 else 1e-12
-    den = jnp.where(jnp.abs(den) < tiny, jnp.where(den < 0, -tiny, tiny), den)
-    return num / den
-
-
-def untaper(x, taper, a3):
-    """Inverse tapering: deformed model-frame points (..., 3) -> undeformed."""
-    kz = x[..., 2:3] / a3
-    fx = taper[..., 0:1] * kz + 1.0
-    fy = taper[..., 1:2] * kz + 1.0
-    return jnp.concatenate([_safe_div(x[..., 0:1], fx), _safe_div(x[..., 1:2], fy), x[..., 2:3]], -1)
-
-
-def taper_points(x, taper, a3):
-    """Forward tapering of model-frame points (..., 3)."""
-    kz = x[..., 2:3] / a3
-    return jnp.concatenate(
-        [x[..., 0:1] * (taper[..., 0:1] * kz + 1.0), x[..., 1:2] * (taper[..., 1:2] * kz + 1.0), x[..., 2:3]], -1
-    )
-
-
-def _atan_ratio(q):
-    """atan(q) / q, with its series below |q| = 1e-2 (safe operand: no 0 / 0 in either branch)."""
-    small = jnp.abs(q) < 1e-2
-    qs = jnp.where(small, 1.0, q)
-    q2 = q * q
-    return jnp.where(small, 1.0 - q2 / 3.0 + q2 * q2 / 5.0, jnp.arctan(qs) / qs)
-
-
-def unbend(x, bend):
-    """Inverse bending (curvature k, angle alpha), exact for every k >= 0 and stable as k -> 0.
-
-    The inverse of `bend_points`: with r the coordinate in the bending plane and w = 1 - k r, the
-    bent angle is g = atan2(k Z, w) and z = g / k, written as z = (Z / w) atan(q) / q, q = k Z / w,
-    while w > 0 (its series near q = 0 keeps every k, however small), plain atan2 / k beyond the
-    bending centre; the in-plane shift is k Z^2 / (sqrt((k Z)^2 + w^2) + w). (..., 3) -> (..., 3).
-    """
-    k, alpha = bend[..., 0:1], bend[..., 1:2]
-    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
-    X, Y, Z = x[..., 0:1], x[..., 1:2], x[..., 2:3]
-    r = X * ca + Y * sa  # projection on the bending plane
-    w = 1.0 - k * r
-    kz = k * Z
-    front = w > 0
-    ws = jnp.where(front, w, 1.0)
-    q = kz / ws
-    ks = jnp.where(front, 1.0, k)  # k != 0 wherever w <= 0
-    z = jnp.where(front, (Z / ws) * _atan_ratio(q), jnp.arctan2(kz, w) / ks)
-    den = jnp.sqrt(kz * kz + w * w) + w
-    tiny = 1e-12 if x.dtype == jnp.float32 else 1e-30
-    shift = k * Z * Z / jnp.maximum(den, tiny)
-    return jnp.concatenate([X - ca * shift, Y - sa * shift, z], -1)
-
-
-def bend_points(x, bend):
-    """Forward bending of model-frame points (..., 3) (Solina & Bajcsy), exact for every k >= 0.
-
-    With g = k z: the in-plane offset (1/k - r)(1 - cos g) = (1 - k r) k z^2 (1 - cos g) / g^2 and
-    the new z = (1 - k r) z sin(g) / g, through `jnp.sinc` (no threshold on k, no 0 / 0).
-    """
-    k, alpha = bend[..., 0:1], bend[..., 1:2]
-    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
-    r = x[..., 0:1] * ca + x[..., 1:2] * sa
-    z = x[..., 2:3]
-    g = k * z
-    one_m_kr = 1.0 - k * r
-    half = jnp.sinc(g / (2 * jnp.pi))  # sin(g / 2) / (g / 2)
-    dR = one_m_kr * k * z * z * 0.5 * half * half  # (1 - k r)(1 - cos g) / k
-    Z = one_m_kr * z * jnp.sinc(g / jnp.pi)  # (1 - k r) sin(g) / k
-    return jnp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)
+    @classmethod
+    def from_dict(cls, d: dict) -> Superquadric:
+        """A `Superquadric` from one entry of `models.json` `parts` (or `Superquadric.to_dict()` / `sqjax fit
+        --json` output): `size`, `epsilon`, `rotation` (else `euler_zyz`), `translation`, `taper`, `bend`;
+        other keys (label, colour, error, ...) are ignored."""
+        if not isinstance(d, dict):
+            raise ValueError(f"a superquadric must be a JSON object, got {type(d).__name__}")
+        if "size" not in d:
+            raise ValueError(f"a superquadric needs 'size' (keys: {', '.join(sorted(d)) or 'none'})")
+        try:
+            arr = {
+                k: np.asarray(d[k], np.float64)
+                for k in ("size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend")
+                if d.get(k) is not None
+            }
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"a superquadric's parameters must be numbers ({e})") from None
+        shapes = {
+            "size": (3,),
+            "epsilon": (2,),
+            "rotation": (3, 3),
+            "euler_zyz": (3,),
+            "translation": (3,),
+            "taper": (2,),
+            "bend": (2,),
+        }
+        for k, v in arr.items():
+            if v.shape != shapes[k] or not np.isfinite(v).all():
+                raise ValueError(f"superquadric '{k}' must be {shapes[k]} finite numbers, got {d[k]!r}")
+        kw = {k: arr[k] for k in ("epsilon", "translation", "taper", "bend") if k in arr}
+        if "rotation" in arr:
+            kw["rotation"] = arr["rotation"]
+        elif "euler_zyz" in arr:
+            kw["euler"] = arr["euler_zyz"]
+        return cls.create(arr["size"], **kw)
 
 
 @jax.jit
@@ -242,109 +212,161 @@ def to_world_frame(sq: Superquadric, x):
 
 
 # ----------------------------------------------------------------------------------------------------
-# the inside-outside function and what is built on it
+# eq. 5 and its gradient: one core
 
 
-@jax.custom_jvp
-def _logaddexp(a, b):
-    """log(exp(a) + exp(b)) for finite a, b; its JVP reuses the forward exponential (no NaN, no overflow)."""
-    return jnp.maximum(a, b) + jnp.log1p(jnp.exp(-jnp.abs(a - b)))
-
-
-@_logaddexp.defjvp
-def _logaddexp_jvp(primals, tangents):
-    a, b = primals
-    ta, tb = tangents
-    q = jnp.exp(-jnp.abs(a - b))
-    out = jnp.maximum(a, b) + jnp.log1p(q)
-    w_big = 1.0 / (1.0 + q)  # weight of the larger argument, in [1/2, 1]
-    wa = jnp.where(a >= b, w_big, 1.0 - w_big)
-    return out, wa * ta + (1.0 - wa) * tb
-
-
-def _ratio_floor(dtype) -> float:
-    # |x / a| below this counts as this: its power is far below the rounding of F near the surface,
-    # and 1 / |x| (and its square, in second derivatives) stays finite.
-    return 1e-10 if jnp.dtype(dtype) == jnp.float32 else 1e-20
-
-
-def _log_ratio(c, log_a):
+def _log_ratio(c, log_a, xp=jnp):
     """log |c / a| on a safe operand: |c| floored at a tiny fraction of a before the logarithm."""
-    thr = jnp.exp(log_a) * _ratio_floor(c.dtype)
-    ac = jnp.abs(c)
-    return jnp.log(jnp.where(ac > thr, ac, thr)) - log_a
+    thr = xp.exp(log_a) * eps("ratio", c.dtype)
+    ac = xp.abs(c)
+    return xp.log(xp.where(ac > thr, ac, thr)) - log_a
 
 
-def log_inside_outside_xyz(x, y, z, log_size, epsilon):
-    """log F (eq. 5) of model-frame coordinates given as three arrays of one shape (the kernel form).
+def _log_f_terms(lr, e1, e2, xp=jnp):
+    """The two log-sum-exps of eq. 5 from the log ratios lr (..., 3) = log |x_i / a_i| and the exponents.
 
-    `log_size[..., i]` and `epsilon[..., j]` broadcast against the coordinates. Two log-sum-exps of
-    `(2 / e) (log|x| - log a)`, with `|x|` floored at a tiny fraction of `a` *before* the logarithm
-    (a safe operand: no infinite derivative of any order), so values, gradients and Hessians are
-    finite for every finite input; capped far outside the model.
+    With A, B, C = (2 / e2) log|x / a1|, (2 / e2) log|y / a2|, (2 / e1) log|z / a3|: s = lse(A, B),
+    u = (e2 / e1) s and t = lse(u, C), so that log F = e1 t. Returns (A, B, C, s, u, t). (The callers
+    take e1, e2 out of epsilon once, so that autodiff sums each exponent's cotangents in one order.)"""
+    A, B, C = lr[..., 0] * (2.0 / e2), lr[..., 1] * (2.0 / e2), lr[..., 2] * (2.0 / e1)
+    s = xp.logaddexp(A, B)
+    u = s * (e2 / e1)
+    t = xp.logaddexp(u, C)
+    return A, B, C, s, u, t
+
+
+def log_inside_outside(x, log_size, epsilon, xp=jnp):
+    """log F (eq. 5) of model-frame points x (..., 3); `log_size` (..., 3) and `epsilon` (..., 2)
+    broadcast against them.
+
+    `F = ((|x/a1|^(2/e2) + |y/a2|^(2/e2))^(e2/e1) + |z/a3|^(2/e1))^e1`, < 0 inside, 0 on the surface.
+    Finite with finite gradients for every finite input; capped far outside the model
+    (`numerics.eps("log_f_cap")`), so that (F - 1)^2 cannot overflow. `xp=np`: the same in numpy.
     """
     e1, e2 = epsilon[..., 0], epsilon[..., 1]
-    lx = _log_ratio(x, log_size[..., 0])
-    ly = _log_ratio(y, log_size[..., 1])
-    lz = _log_ratio(z, log_size[..., 2])
-    s = _logaddexp(lx * (2.0 / e2), ly * (2.0 / e2))
-    t = _logaddexp(s * (e2 / e1), lz * (2.0 / e1))
-    return jnp.minimum(e1 * t, _log_cap(x.dtype))
-
-
-def log_inside_outside_local(x, log_size, epsilon):
-    """log F (eq. 5) of model-frame points x (..., 3), for log sizes (3,) and exponents (2,).
-
-    `F = ((|x/a1|^(2/e2) + |y/a2|^(2/e2))^(e2/e1) + |z/a3|^(2/e1))^e1`, computed as two log-sum-exps.
-    Finite with finite gradients for every finite input; capped at a value far outside any model.
-    """
-    return log_inside_outside_xyz(x[..., 0], x[..., 1], x[..., 2], log_size, epsilon)
+    _, _, _, _, _, t = _log_f_terms(_log_ratio(x, log_size, xp), e1, e2, xp)
+    return xp.minimum(e1 * t, eps("log_f_cap", x.dtype))
 
 
 def log_inside_outside_and_gradient(x, log_size, epsilon):
-    """log F (eq. 5) of model-frame points x (..., 3), log |grad log F| (...) and the unit gradient
-    (..., 3) (the outward normal direction, model frame), in closed form.
+    """log F (eq. 5, not capped) of model-frame points x (..., 3), log |grad log F| (...) and the unit
+    gradient (..., 3) (the outward normal, model frame), in closed form.
 
-    `log_size` (..., 3) and `epsilon` (..., 2) broadcast against the points. With A, B, C the terms
-    (2 / e2) log|x / a1|, (2 / e2) log|y / a2|, (2 / e1) log|z / a3|, s = lse(A, B) and
-    t = lse(e2 / e1 s, C): d log F / dx = 2 w_t w_s / x, d / dy = 2 w_t (1 - w_s) / y,
-    d / dz = 2 (1 - w_t) / z, with w the softmax weights of the two log-sum-exps. Everything stays in
-    logs on the safe operand of `log_inside_outside_xyz`, so all three are finite at the centre, on
-    the axes and far away. For kernels that need no autodiff (the eq. 10 distances of segmentation).
+    With w the softmax weights of the two log-sum-exps of `_log_f_terms`: d log F / dx =
+    2 w_t w_s / x, d / dy = 2 w_t (1 - w_s) / y, d / dz = 2 (1 - w_t) / z. Everything stays in logs on
+    the safe operand of `_log_ratio`, so all three are finite at the centre, on the axes and far away.
+    For kernels that need no autodiff of F itself (eq. 10 distances, the fitter's signed distance).
     """
     e1, e2 = epsilon[..., 0], epsilon[..., 1]
     lr = _log_ratio(x, log_size)
-    A, B, C = lr[..., 0] * (2.0 / e2), lr[..., 1] * (2.0 / e2), lr[..., 2] * (2.0 / e1)
-    s = jnp.logaddexp(A, B)
-    u = s * (e2 / e1)
-    t = jnp.logaddexp(u, C)
+    A, B, C, s, u, t = _log_f_terms(lr, e1, e2)
     log_g = jnp.stack([u - t + A - s, u - t + B - s, C - t], -1) - (lr + log_size) + jnp.log(2.0)
     log_gnorm = 0.5 * jax.scipy.special.logsumexp(2.0 * log_g, axis=-1)
     normal = jnp.where(x < 0, -1.0, 1.0) * jnp.exp(log_g - log_gnorm[..., None])
     return e1 * t, log_gnorm, normal
 
 
+def size_weighted_residual(log_f, log_size):
+    """The paper's residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7) from log F (...) and log sizes (..., 3)."""
+    return jnp.exp(0.5 * jnp.sum(log_size, -1)) * jnp.expm1(log_f)
+
+
+def distance_from_log(log_f, log_grad_norm):
+    """Eq. 10, |F - 1| / |grad F| = |1 - 1 / F| / |grad log F|, from log F and log |grad log F|: no
+    power of F is formed. Safe operands on both branches (|1 - 1 / F| in logs, inside and outside; 0
+    on the surface), capped at e^30, so the value and its gradients are finite for every finite input.
+    """
+    lf = jnp.where(log_f == 0.0, 1e-30, log_f)  # safe operand: F = 1 gives d = 0 below
+    log_num = jnp.where(
+        lf < 0,
+        -lf + jnp.log(-jnp.expm1(jnp.minimum(lf, -1e-30))),
+        jnp.log(-jnp.expm1(-jnp.maximum(lf, 1e-30))),
+    )  # log |1 - 1/F|
+    return jnp.where(log_f == 0.0, 0.0, jnp.exp(jnp.minimum(log_num - log_grad_norm, 30.0)))
+
+
+def signed_distance_from_log(log_f, log_grad_norm):
+    """Signed first-order distance of the root form F^(1/2) to its level 1, from log F and
+    log |grad log F|: (F^(1/2) - 1) / |grad F^(1/2)| = 2 (1 - F^(-1/2)) / |grad log F|, negative inside.
+
+    Exact along the normal of a box's face and of a sphere, where F^(1/2) is linear in the distance
+    (|z / a3|, |x| / a); eq. 10's (F - 1) / |grad F| is not (it halves distances far outside a face
+    and inflates them inside, so a fit to it prefers models that are too small). log F is floored at
+    `numerics.eps("log_f_floor")` (within ~1e-9 a of the centre), so the value stays finite."""
+    lo = eps("log_f_floor", log_f.dtype)
+    return -2.0 * jnp.expm1(-0.5 * jnp.maximum(log_f, lo)) * jnp.exp(-log_grad_norm)
+
+
+def frame_distance(x, log_size, epsilon, taper, bend, of_logs=signed_distance_from_log):
+    """A first-order distance (`of_logs`: `signed_distance_from_log` or eq. 10's `distance_from_log`)
+    of one rotated model-frame point x (3,) to a model that may be tapered and bent, in the units of x.
+
+    The distance is first found in the undeformed frame, d_u, then divided by the stretch of the
+    undeforming map along the normal, |J^T n| (J its Jacobian at x, n the unit normal there): to first
+    order the world distance is d_u / |grad_x d_u| (1 without deformation). Without it a strong bend
+    or taper squeezes the undeformed frame, and a fit could shrink its residuals below the noise by
+    deforming (a flat sheet bent to k = 10^3 does)."""
+    undeform = lambda q: untaper(unbend(q, bend), taper, jnp.exp(log_size[2:3]))
+    u, pullback = jax.vjp(undeform, x)
+    log_f, log_gn, normal = log_inside_outside_and_gradient(u, log_size, epsilon)
+    (g,) = pullback(normal)
+    stretch = jnp.sqrt(jnp.sum(g * g) + jnp.finfo(x.dtype).tiny)
+    return of_logs(log_f, log_gn) / jnp.maximum(stretch, 1e-3)
+
+
+def _per_point(fn, sq: Superquadric, points):
+    """`fn(x, log_size, epsilon, taper, bend)` of one rotated model-frame point, over points (..., 3)."""
+    x = (points - sq.translation) @ sq.rotation
+    batch = jnp.broadcast_shapes(x.shape[:-1], sq.size.shape[:-1])
+    args = [
+        jnp.broadcast_to(v, batch + v.shape[-1:]).reshape(-1, v.shape[-1])
+        for v in (x, jnp.log(sq.size), sq.epsilon, sq.taper, sq.bend)
+    ]
+    return jax.vmap(fn)(*args).reshape(batch)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the public functions of a superquadric and world points (..., 3)
+
+
 @jax.jit
 def inside_outside(sq: Superquadric, points):
-    """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside."""
+    """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside (eq. 5)."""
     x = to_model_frame(sq, points)
-    return jnp.exp(log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon))
+    return jnp.exp(log_inside_outside(x, jnp.log(sq.size), sq.epsilon))
 
 
 @jax.jit
 def contains(sq: Superquadric, points):
     """Inside test, (..., 3) -> bool (...)."""
     x = to_model_frame(sq, points)
-    return log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon) <= 0.0
+    return log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0
 
 
 @jax.jit
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
-    x = to_model_frame(sq, points)
     log_a = jnp.log(sq.size)
-    log_f = log_inside_outside_local(x, log_a, sq.epsilon)
-    return jnp.exp(0.5 * jnp.sum(log_a, -1)) * jnp.expm1(log_f)
+    return size_weighted_residual(log_inside_outside(to_model_frame(sq, points), log_a, sq.epsilon), log_a)
+
+
+@jax.jit
+def distance(sq: Superquadric, points):
+    """Approximate Euclidean distance to the surface, |F - 1| / |grad F| (eq. 10), (..., 3) -> (...).
+
+    Exact on the surface to first order; meant for points near the model (growing, selection). In
+    closed form (`distance_from_log`), through the stretch of the deformations (`frame_distance`);
+    values and reverse-mode gradients are finite for every finite input."""
+    return _per_point(lambda *a: frame_distance(*a, of_logs=distance_from_log), sq, points)
+
+
+@jax.jit
+def signed_distance(sq: Superquadric, points):
+    """The residual `fit` minimises (`FitOptions.residual="distance"`), (..., 3) -> (...): the signed
+    first-order distance to the surface through the root form of F (`signed_distance_from_log`),
+    negative inside, in the units of the points. Closed-form gradient of log F: finite values and
+    gradients for every finite input."""
+    return _per_point(frame_distance, sq, points)
 
 
 def _safe_norm(v):
@@ -359,148 +381,10 @@ def _safe_norm(v):
 
 
 @jax.jit
-def distance(sq: Superquadric, points):
-    """Approximate Euclidean distance to the surface, |f| / ||grad_p f|| (eq. 10), (..., 3) -> (...).
-
-    Exact on the surface to first order; meant for points near the model (growing, selection).
-    Computed in the log domain, |F - 1| / |grad F| = |1 - 1 / F| / |grad log F|: no power of F is
-    formed, the norm is scaled, log F is floored at -20 (float32; -40 float64: within ~1e-9 a of the
-    centre, where eq. 10 means nothing anyway) and |grad log F| at 1e-18 (beyond the cap of F, far
-    outside), so values and reverse-mode gradients are finite for every finite input.
-    """
-    log_a = jnp.log(sq.size)
-    lo, gfloor = (-20.0, 1e-18) if points.dtype == jnp.float32 else (-40.0, 1e-150)
-
-    def log_F(p):
-        return log_inside_outside_local(to_model_frame(sq, p), log_a, sq.epsilon)
-
-    flat = points.reshape(-1, 3)
-    lf, g = jax.vmap(jax.value_and_grad(log_F))(flat)
-    gn = _safe_norm(g)
-    d = jnp.abs(jnp.expm1(-jnp.maximum(lf, lo))) / jnp.where(gn > gfloor, gn, gfloor)
-    return d.reshape(points.shape[:-1])
-
-
-def distance_from_log(log_f, log_grad_norm):
-    """Signed first-order distance of the root form F^(1/2) to its level 1, from log F and log |grad log F|:
-    (F^(1/2) - 1) / |grad F^(1/2)| = 2 (1 - F^(-1/2)) / |grad log F|, negative inside.
-
-    Exact along the normal of a box's face and of a sphere, where F^(1/2) is linear in the distance
-    (|z / a3|, |x| / a); eq. 10's (F - 1) / |grad F| is not (it halves distances far outside a face
-    and inflates them inside, so a fit to it prefers models that are too small). log F is floored at
-    -20 (float32; -40 float64: within ~1e-9 a of the centre), so the value stays finite."""
-    lo = -20.0 if log_f.dtype == jnp.float32 else -40.0
-    return -2.0 * jnp.expm1(-0.5 * jnp.maximum(log_f, lo)) * jnp.exp(-log_grad_norm)
-
-
-def deformed_distance(x, log_size, epsilon, taper, bend):
-    """Signed first-order distance (`distance_from_log`) of one rotated model-frame point x (3,) to a
-    tapered and bent model, in the units of x.
-
-    The distance is first found in the undeformed frame, d_u, then divided by the stretch of the
-    undeforming map along the normal, |J^T n| (J its Jacobian at x, n the unit normal there): to first
-    order the world distance is d_u / |grad_x d_u|. Without it a strong bend or taper squeezes the
-    undeformed frame, and a fit could shrink its residuals below the noise by deforming (a flat sheet
-    bent to k = 10^3 does)."""
-    undeform = lambda q: untaper(unbend(q, bend), taper, jnp.exp(log_size[2:3]))
-    u, pullback = jax.vjp(undeform, x)
-    log_f, log_gn, normal = log_inside_outside_and_gradient(u, log_size, epsilon)
-    (g,) = pullback(normal)
-    stretch = jnp.sqrt(jnp.sum(g * g) + jnp.finfo(x.dtype).tiny)
-    return distance_from_log(log_f, log_gn) / jnp.maximum(stretch, 1e-3)
-
-
-@jax.jit
-def signed_distance(sq: Superquadric, points):
-    """The residual `fit` minimises (`FitOptions.residual="distance"`), (..., 3) -> (...): the signed
-    first-order distance to the surface through the root form of F (`distance_from_log`), negative
-    inside, in the units of the points; of a deformed model through `deformed_distance`. Closed-form
-    gradient of log F: finite values and gradients for every finite input."""
-    x = (points - sq.translation) @ sq.rotation
-    batch = jnp.broadcast_shapes(x.shape[:-1], sq.size.shape[:-1])
-    args = [
-        jnp.broadcast_to(v, batch + v.shape[-1:]).reshape(-1, v.shape[-1])
-        for v in (x, jnp.log(sq.size), sq.epsilon, sq.taper, sq.bend)
-    ]
-    return jax.vmap(deformed_distance)(*args).reshape(batch)
-
-
-@jax.jit
 def radial_distance(sq: Superquadric, points):
     """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...).
 
     |x| is a scaled norm (no overflow of |x|^2 beyond 1.8e19 in float32)."""
     x = to_model_frame(sq, points)
-    logF = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
-    n = _safe_norm(x)
-    return n * jnp.abs(-jnp.expm1(-0.5 * logF))
-
-
-# ----------------------------------------------------------------------------------------------------
-# surfaces (host side)
-
-
-def _spow(c, e):
-    return np.sign(c) * np.abs(c) ** e
-
-
-def surface_grid(sq: Superquadric, resolution: int = 48):
-    """Parametric surface points, numpy `(resolution, 2 * resolution, 3)` in world coordinates."""
-    a = np.asarray(sq.size, float)
-    e1, e2 = np.asarray(sq.epsilon, float)
-    eta = np.linspace(-np.pi / 2, np.pi / 2, resolution)
-    om = np.linspace(-np.pi, np.pi, 2 * resolution, endpoint=False)
-    eta, om = np.meshgrid(eta, om, indexing="ij")
-    c = np.cos(eta)
-    c[[0, -1]] = 0.0  # exact poles, so the mesh closes
-    ce, se = _spow(c, e1), _spow(np.sin(eta), e1)
-    x = np.stack([a[0] * ce * _spow(np.cos(om), e2), a[1] * ce * _spow(np.sin(om), e2), a[2] * se], -1)
-    return np.asarray(to_world_frame(sq, jnp.asarray(x, sq.size.dtype)), float)
-
-
-def to_trimesh(sq: Superquadric, resolution: int = 48):
-    """Closed triangle mesh of one superquadric (`trimesh.Trimesh`), world coordinates."""
-    import trimesh
-
-    g = surface_grid(sq, resolution)
-    n_eta, n_om = g.shape[:2]
-    verts = g.reshape(-1, 3)
-    i, j = np.meshgrid(np.arange(n_eta - 1), np.arange(n_om), indexing="ij")
-    a = i * n_om + j
-    b = i * n_om + (j + 1) % n_om
-    c = (i + 1) * n_om + j
-    d = (i + 1) * n_om + (j + 1) % n_om
-    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
-    mesh = trimesh.Trimesh(verts, faces, process=True)  # merges the pole vertices
-    mesh.update_faces(mesh.nondegenerate_faces())
-    mesh.remove_unreferenced_vertices()
-    mesh.fix_normals()
-    return mesh
-
-
-def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.0, viewpoint=None):
-    """`n` points (numpy `(n, 3)`) uniform by area on the surface, with Gaussian noise of std `noise`.
-
-    Points are drawn on a fine mesh and moved along the ray from the model centre onto the exact surface
-    (F = 1 up to rounding), so no chord error biases them inwards. With `viewpoint` (3,) only the side
-    facing that point is sampled (one range-sensor view; self-occlusion of concave shapes is ignored).
-    """
-    import trimesh
-
-    rng = np.random.default_rng(seed)
-    mesh = to_trimesh(sq, 64)
-    if viewpoint is not None:
-        centres = mesh.triangles_center
-        facing = np.einsum("ij,ij->i", mesh.face_normals, np.asarray(viewpoint, float) - centres) > 0
-        mesh = mesh.submesh([np.nonzero(facing)[0]], append=True)
-    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))  # pyright: ignore[reportAssignmentType]
-    pts = np.asarray(_onto_surface(sq, jnp.asarray(pts, sq.size.dtype)), float)
-    return pts + noise * rng.standard_normal((n, 3))
-
-
-@jax.jit
-def _onto_surface(sq: Superquadric, points):
-    """Move world points along the ray from the centre (undeformed model frame) onto the surface F = 1."""
-    x = to_model_frame(sq, points)
-    log_f = log_inside_outside_local(x, jnp.log(sq.size), sq.epsilon)
-    return to_world_frame(sq, x * jnp.exp(-0.5 * log_f)[..., None])
+    logF = log_inside_outside(x, jnp.log(sq.size), sq.epsilon)
+    return _safe_norm(x) * jnp.abs(-jnp.expm1(-0.5 * logF))

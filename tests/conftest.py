@@ -1,10 +1,7 @@
 import os
 from pathlib import Path
 
-import pytest
-
 _ROOT = Path(__file__).resolve().parents[1]
-_DATA = Path(os.environ.get("SQJAX_DATA", _ROOT.parent / "shared" / "data"))
 
 # One persistent compilation cache for the whole run. The pytest-xdist controller sets it before the
 # workers start and they inherit it, so a kernel compiled in one worker is read back by the other, by
@@ -16,11 +13,3 @@ _DATA = Path(os.environ.get("SQJAX_DATA", _ROOT.parent / "shared" / "data"))
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_ROOT / ".pytest_cache" / "jax"))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
-
-
-def data_path(*parts) -> Path:
-    """Path into the real test data (``../shared/data`` beside the clone, or $SQJAX_DATA); skips when absent."""
-    p = _DATA.joinpath(*parts)
-    if not p.exists():
-        pytest.skip(f"real test data not found at {p} (set SQJAX_DATA to the shared/data folder)")
-    return p

@@ -18,10 +18,11 @@ import pytest
 import trimesh
 from PIL import Image
 
-from sqjax.cli import _Progress, main
-from sqjax.export import label_colors
+from sqjax.cli import main
+from sqjax.cli.progress import Progress
+from sqjax.colors import label_colors
 from sqjax.formats import read_range_image, write_points, write_range_image
-from sqjax.segment import segment
+from sqjax.segmentation import segment
 
 SHAPE = (60, 80)
 # in-process runs must not write into the user's compilation cache (tests/test_startup.py covers it)
@@ -230,7 +231,8 @@ def test_evaluate_truth_against_itself(capsys, scene, segmented, tmp_path):
 
 @pytest.mark.parametrize("ext", [".ply", ".xyz", ".npy"])
 def test_fit(capsys, tmp_path, ext):
-    from sqjax.superquadric import Superquadric, sample_surface
+    from sqjax.mesh import sample_surface
+    from sqjax.superquadric import Superquadric
 
     truth = Superquadric.create((0.5, 0.3, 0.2), (0.4, 0.9), euler=(0.3, 0.6, 0.1), translation=(0.1, -0.2, 3.0))
     pts = sample_surface(truth, 400, noise=0.002, seed=1)
@@ -319,7 +321,7 @@ class _Terminal(io.StringIO):
 def test_progress_bar_only_on_a_terminal():
     tty, pipe = _Terminal(), io.StringIO()
     for stream in (tty, pipe):
-        bar = _Progress(10, stream, rounds=2)
+        bar = Progress(10, stream, rounds=2)
         bar.start("x")
         bar(5, 3, 7)
         bar.close()
@@ -330,7 +332,7 @@ def test_progress_bar_only_on_a_terminal():
 
 
 def test_progress_total_shrinks_to_the_truth():
-    bar = _Progress(10, _Terminal(), rounds=3)
+    bar = Progress(10, _Terminal(), rounds=3)
     bar.start("x")
     assert bar.total == 33
     for step in range(1, 5):  # round 1 stops after 4 steps: models done
@@ -346,7 +348,7 @@ def test_progress_total_shrinks_to_the_truth():
 
 
 def test_progress_sees_a_reseed_round_by_its_new_models():
-    bar = _Progress(10, _Terminal(), rounds=2)
+    bar = Progress(10, _Terminal(), rounds=2)
     bar.start("x")
     bar(1, 4, 9)
     bar(2, 3, 5)  # selection dropped models, and then stopped them all without a call with 0 active
@@ -366,7 +368,7 @@ def no_segment(monkeypatch):
     def refuse(*a, **k):
         raise AssertionError("segment() ran before the check")
 
-    monkeypatch.setattr(importlib.import_module("sqjax.segment"), "segment", refuse)
+    monkeypatch.setattr(importlib.import_module("sqjax.segmentation"), "segment", refuse)
 
 
 def test_unusable_out_fails_before_segmenting(capsys, scene, tmp_path, no_segment):
@@ -380,25 +382,25 @@ def test_unusable_out_fails_before_segmenting(capsys, scene, tmp_path, no_segmen
 def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no_segment):
     import dataclasses
 
-    segment_module = importlib.import_module("sqjax.segment")
+    options_module = importlib.import_module("sqjax.options")
 
     @dataclasses.dataclass(frozen=True)
-    class Checked(segment_module.SegmentOptions):
+    class Checked(options_module.SegmentOptions):
         def __post_init__(self):
-            if self.noise is not None and self.noise < 0:
-                raise ValueError(f"SegmentOptions: noise must be >= 0, got {self.noise}")
+            if self.sensor.noise is not None and self.sensor.noise < 0:
+                raise ValueError(f"SegmentOptions: noise must be >= 0, got {self.sensor.noise}")
 
-    monkeypatch.setattr(segment_module, "SegmentOptions", Checked)
+    monkeypatch.setattr(options_module, "SegmentOptions", Checked)
     code, _, err = run(capsys, "segment", scene, "-o", "noise=-1")
     assert_one_line_error(code, err)
     assert code == 2 and "noise" in err
 
     @dataclasses.dataclass(frozen=True)
-    class Typed(segment_module.SegmentOptions):
+    class Typed(options_module.SegmentOptions):
         def __post_init__(self):
             raise TypeError("SegmentOptions: window must be an int")
 
-    monkeypatch.setattr(segment_module, "SegmentOptions", Typed)
+    monkeypatch.setattr(options_module, "SegmentOptions", Typed)
     code, _, err = run(capsys, "segment", scene, "-o", "window=4")
     assert_one_line_error(code, err)
     assert code == 2 and "internal" not in err

@@ -17,8 +17,8 @@ from sqjax.evaluate import (
     volume_iou,
     volume_iou_batch,
 )
+from sqjax.mesh import surface_grid
 from sqjax.scenes import paper_scene
-from sqjax.superquadric import surface_grid
 
 
 def _five_regions():

@@ -8,10 +8,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_fitting import params, random_problem, volume_iou
 
-from sqjax import Superquadric, fitting
-from sqjax.fitting import FitOptions, Status, fit
+from sqjax import Superquadric, lm, solver
+from sqjax.fitting import FitOptions, fit
+from sqjax.status import Status
+
+from helpers import params, random_problem, volume_iou
 
 FAST = dict(max_steps=8, multistart=False)  # one start: small kernels for the tests of plumbing
 
@@ -250,7 +252,7 @@ def test_segmentation_kernel_unchanged_by_default_options():
     rng = np.random.default_rng(10)
     _, pts = random_problem(rng, n=64)
     opts = FitOptions(max_steps=4, multistart=False)
-    theta, cost, conv, dist = fitting.fit_padded(
+    theta, cost, conv, dist = solver.fit_padded(
         jnp.asarray(pts[None], jnp.float32), jnp.ones((1, 64), bool), None, opts
     )
     assert theta.shape == (1, 11) and cost.shape == (1,) and dist.shape == (1, 64)
@@ -268,7 +270,7 @@ SLABS = [
 
 @pytest.fixture(scope="module")
 def slabs():
-    from sqjax import sample_surface
+    from sqjax.mesh import sample_surface
 
     truth = [Superquadric.create(size, eps) for size, eps in SLABS]
     pts = np.stack(
@@ -317,7 +319,7 @@ def test_distance_residual_is_exact_on_box_faces_and_spheres(kind):
     else:  # along a ray through the centre
         u = jnp.array([1.0, 2.0, -2.0]) / 3.0
         pts = (1.3 + d)[None, :] * u[:, None]
-    r = jax.vmap(fitting._residual_point, in_axes=(0, 0, 0, None, None, None, None))(
+    r = jax.vmap(lm.residual_point, in_axes=(0, 0, 0, None, None, None, None))(
         pts[0], pts[1], pts[2], la, e, jnp.zeros(4), False
     )
     np.testing.assert_allclose(np.asarray(r), np.asarray(d), atol=2e-3 if kind == "box" else 1e-5)
@@ -328,12 +330,13 @@ def test_residual_option_is_validated():
         FitOptions(residual="eq7")
 
 
+@pytest.mark.slow
 def test_deformations_kept_only_when_they_shorten_the_description():
     """https://github.com/sqjax/sqjax/issues/14: `deform=True` fits the undeformed model too and keeps
     the 4 deformation parameters only when n log(cost_plain / cost_deformed) > 4 log n (BIC). Every
     fit either carries no deformation at all and equals the plain fit, or beats the plain fit's cost by
     that margin; a clearly tapered truth (the last problem) keeps its tapering."""
-    from sqjax import sample_surface
+    from sqjax.mesh import sample_surface
 
     rng = np.random.default_rng(21)
     n = 200
@@ -360,7 +363,8 @@ def test_distance_of_a_deformed_model_is_in_world_units(deformation):
     """`signed_distance` of a tapered or bent model matches the distance to a dense sample of its surface
     (median within 5%, 95% within 25%, for points 0.02-0.1 outside; first order): the undeformed
     frame's distance is divided by the stretch of the undeforming map."""
-    from sqjax import sample_surface, signed_distance
+    from sqjax.mesh import sample_surface
+    from sqjax.superquadric import signed_distance
 
     sq = Superquadric.create((0.6, 0.8, 1.5), (0.6, 0.8), **deformation)
     dense = sample_surface(sq, 60_000, seed=1)

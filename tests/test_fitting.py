@@ -3,75 +3,21 @@
 Most checks share one batch of 32 problems of 200 points (one compilation of the (32, 256) kernel).
 """
 
-import itertools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sqjax import Superquadric, sample_surface, signed_distance
 from sqjax import rotation as so3
-from sqjax.fitting import MIN_POINTS, Fit, FitOptions, fit
+from sqjax.chart import NUM_PARAMS
+from sqjax.fitting import Fit, FitOptions, fit
+from sqjax.mesh import sample_surface
+from sqjax.superquadric import Superquadric, signed_distance
+
+from helpers import matched_axes, params, random_problem, volume_iou
 
 N_POINTS = 200
 N_RECOVERY = 20
-
-
-def random_rotation(rng):
-    """Uniform random rotation matrix (from a normalised Gaussian quaternion)."""
-    q = rng.standard_normal(4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def random_problem(rng, n=N_POINTS, noise=0.01):
-    """A random superquadric (sizes 0.5-2, exponents 0.2-1.8) and n points of one view, noise 1% of its size."""
-    size, eps = rng.uniform(0.5, 2.0, 3), rng.uniform(0.2, 1.8, 2)
-    R, t = random_rotation(rng), rng.uniform(-1, 1, 3)
-    sq = Superquadric.create(size, eps, rotation=R, translation=t)
-    view = rng.standard_normal(3)
-    view = t + 10 * view / np.linalg.norm(view)
-    pts = sample_surface(sq, n, seed=int(rng.integers(2**31)), noise=noise * size.mean(), viewpoint=view)
-    return (size, eps, R, t), pts
-
-
-def params(sq, k=None):
-    """(size, epsilon, rotation, translation) as numpy float64, problem k of a batch."""
-    get = (lambda v: np.asarray(v, float)) if k is None else (lambda v: np.asarray(v[k], float))
-    return get(sq.size), get(sq.epsilon), get(sq.rotation), get(sq.translation)
-
-
-def inside(p, model):
-    """Eq. 5 written out in numpy (independent of the library): world points (n, 3) -> bool (n,)."""
-    size, (e1, e2), R, t = model
-    x = np.abs((p - t) @ R / size)
-    with np.errstate(all="ignore"):
-        F = ((x[:, 0] ** (2 / e2) + x[:, 1] ** (2 / e2)) ** (e2 / e1) + x[:, 2] ** (2 / e1)) ** e1
-    return F <= 1.0
-
-
-def volume_iou(a, b, n=40_000, seed=0):
-    """Monte Carlo volume IoU of two models in the union of their bounding boxes."""
-    rng = np.random.default_rng(seed)
-    boxes = [np.abs(m[2]) @ m[0] for m in (a, b)]
-    lo = np.minimum(a[3] - boxes[0], b[3] - boxes[1])
-    hi = np.maximum(a[3] + boxes[0], b[3] + boxes[1])
-    p = lo + (hi - lo) * rng.random((n, 3))
-    ia, ib = inside(p, a), inside(p, b)
-    return (ia & ib).sum() / max((ia | ib).sum(), 1)
-
-
-def matched_axes(R_true, R_fit):
-    """Permutation perm with fitted axis perm[i] closest to true axis i (the axis-permutation symmetry)."""
-    dots = np.abs(R_true.T @ R_fit)
-    return max(itertools.permutations(range(3)), key=lambda p: sum(dots[i, p[i]] for i in range(3)))
 
 
 G_ROT = np.asarray(so3.exp(jnp.array([0.7, -1.9, 0.4])), float)
@@ -232,7 +178,7 @@ def test_float64_path(batch):
         (np.zeros((2, 50, 3, 1)), {}, "shape"),
         (np.zeros((0, 3)), {}, "empty"),
         (np.zeros((3, 0, 3)), {}, "empty"),
-        (np.random.default_rng(0).normal(size=(MIN_POINTS - 1, 3)), {}, "too few"),
+        (np.random.default_rng(0).normal(size=(NUM_PARAMS - 1, 3)), {}, "too few"),
         (np.full((50, 3), np.nan), {}, "too few"),
         (np.random.default_rng(0).normal(size=(50, 3)), {"mask": np.zeros(50, bool)}, "too few"),
         (np.random.default_rng(0).normal(size=(50, 3)), {"mask": np.ones(49, bool)}, "mask shape"),
@@ -266,7 +212,7 @@ def test_a_traced_size_bound_is_the_compiled_one():
     kernel, as segmentation's refits do) and gives the fit of the Python bool it holds: on a sheet of
     points (an open surface, where the bound decides the lateral size) the two flags differ, and each
     traced flag matches its compiled twin."""
-    from sqjax.fitting import fit_padded
+    from sqjax.solver import fit_padded
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(-1, 1, (1, 128, 2))

@@ -7,10 +7,11 @@ import struct
 import numpy as np
 import pytest
 
-from sqjax.formats import fit_pinhole, lzf_decompress, read_points, read_range_image, write_points, write_range_image
+from sqjax.formats import read_points, read_range_image, write_points, write_range_image
+from sqjax.pcd import fit_pinhole, lzf_decompress
 from sqjax.rangeimage import OrthographicCamera, PinholeCamera, RangeImage
 
-from conftest import data_path
+from helpers import data_path
 
 CAM = PinholeCamera(50.0, 52.0, 15.5, 11.5)
 

@@ -5,8 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sqjax import Superquadric, sample_surface
 from sqjax.fitting import FitOptions, fit
+from sqjax.mesh import sample_surface
+from sqjax.superquadric import Superquadric
+
+from helpers import finite_difference_jvp
 
 TRUTH = dict(size=(1.0, 0.7, 1.3), epsilon=(0.6, 1.3), euler=(0.3, 1.1, -0.8), translation=(0.2, -0.1, 0.4))
 TIGHT = FitOptions(max_steps=40, multistart=False)  # from a warm start: converged to rounding in float64
@@ -34,21 +37,22 @@ def x64():
         yield
 
 
+@pytest.mark.slow
 def test_jvp_matches_finite_differences_of_refits(x64):
     p = jnp.asarray(_points(), jnp.float64)
     rng = np.random.default_rng(1)
     fitted = _fitted_jit
     theta = np.asarray(fitted(p))
     assert np.all(theta[6:] > 0.15) and np.all(theta[6:] < 1.85)  # exponents inside the bounds
-    h = 1e-5
     for _ in range(2):
         v = jnp.asarray(rng.standard_normal(p.shape))
         _, tangent = _jvp_jit(p, v)
-        fd = (np.asarray(fitted(p + h * v)) - np.asarray(fitted(p - h * v))) / (2 * h)
+        fd = finite_difference_jvp(fitted, p, v)
         err = np.linalg.norm(np.asarray(tangent) - fd) / np.linalg.norm(fd)
         assert err < 1e-3, (err, np.asarray(tangent), fd)
 
 
+@pytest.mark.slow
 def test_reverse_mode_matches_forward_mode(x64):
     p = jnp.asarray(_points(seed=2), jnp.float64)
     rng = np.random.default_rng(3)
@@ -59,6 +63,7 @@ def test_reverse_mode_matches_forward_mode(x64):
     assert float(jnp.sum(grad * v)) == pytest.approx(float(jnp.dot(w, tangent)), rel=1e-8)
 
 
+@pytest.mark.slow
 def test_grad_of_loss_under_jit_and_vmap():
     """A warm-started float32 fit (as in a differentiable pipeline) inside jit(vmap(grad(...))): finite,
     and the exact identities of an equivariant fit: d size / d(scaling) = size, d centre / d(shift) = I.

@@ -18,6 +18,7 @@ import sqjax
 from sqjax.cli import main
 from sqjax.dataset import MARKER, _configure_jax, expand_inputs, segment_many
 from sqjax.formats import write_range_image
+from sqjax.scenes import random_scene
 
 SHAPE = (60, 80)
 
@@ -41,7 +42,7 @@ def scenes(cache_dir, tmp_path_factory):
     d = tmp_path_factory.mktemp("scenes")
     paths = []
     for seed in (0, 1):
-        image, _ = sqjax.random_scene(seed, n_parts=(2, 3), shape=SHAPE)
+        image, _ = random_scene(seed, n_parts=(2, 3), shape=SHAPE)
         write_range_image(d / f"scene{seed}.npz", image)
         paths.append(d / f"scene{seed}.npz")
     (d / "corrupt.npz").write_bytes(b"PK\x03\x04 this is not a zip archive")
@@ -106,7 +107,7 @@ def test_resume_skips_finished_scenes(serial, scenes, monkeypatch):
     out, first = serial
     _, paths = scenes
     calls = []
-    module = importlib.import_module("sqjax.segment")
+    module = importlib.import_module("sqjax.segmentation")
     real = module.segment
 
     def counting(data, **kw):
@@ -169,6 +170,7 @@ def _params(seg):
     ]
 
 
+@pytest.mark.slow
 def test_dask_equals_serial(serial, scenes, cache_dir, tmp_path):
     pytest.importorskip("distributed", reason="Dask distributed is not installed (pip install 'sqjax[dask]')")
     _, paths = scenes

@@ -16,15 +16,8 @@ import trimesh
 from PIL import Image
 
 from sqjax import export
-from sqjax.export import (
-    GLTF_FROM_CAMERA,
-    atomic_paths,
-    check_writable_dir,
-    parts_to_scene,
-    read_segmentation,
-    superquadric_from_dict,
-    write_segmentation,
-)
+from sqjax.export import GLTF_FROM_CAMERA, parts_to_scene, read_segmentation, write_segmentation
+from sqjax.files import atomic_paths, check_writable_dir
 from sqjax.rangeimage import PinholeCamera, RangeImage
 from sqjax.superquadric import Superquadric
 
@@ -88,13 +81,13 @@ def test_models_json_round_trip(tmp_path):
 def test_superquadric_from_dict_takes_euler_or_rotation_and_ignores_extras():
     sq = _sqs()[0]
     d = {**sq.to_dict(), "label": 3, "color": [1, 2, 3], "num_points": 10}
-    _close(superquadric_from_dict(d), sq)
+    _close(Superquadric.from_dict(d), sq)
     d.pop("rotation")  # euler_zyz only
-    _close(superquadric_from_dict(d), sq)
+    _close(Superquadric.from_dict(d), sq)
     with pytest.raises(ValueError, match="size"):
-        superquadric_from_dict({"epsilon": [1, 1]})
+        Superquadric.from_dict({"epsilon": [1, 1]})
     with pytest.raises(ValueError, match="translation"):
-        superquadric_from_dict({"size": [1, 1, 1], "translation": [0, 0]})
+        Superquadric.from_dict({"size": [1, 1, 1], "translation": [0, 0]})
 
 
 def test_read_segmentation_errors_name_the_file(tmp_path):

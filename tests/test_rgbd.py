@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from sqjax.formats import read_intrinsics, read_points, read_range_image, read_rgbd, write_range_image
+from sqjax.formats import read_points, read_range_image, read_rgbd, write_range_image
 from sqjax.rangeimage import PinholeCamera, RangeImage
+from sqjax.rgbd import read_intrinsics
 
-from conftest import data_path
+from helpers import data_path
 
 CAM = PinholeCamera(50.0, 52.0, 15.5, 11.5)
 

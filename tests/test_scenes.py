@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from sqjax import Superquadric, contains, inside_outside, sample_surface
+from sqjax.mesh import sample_surface
 from sqjax.rangeimage import OrthographicCamera, PinholeCamera
+from sqjax.raycast import render
 from sqjax.scenes import (
     ARRANGEMENTS,
     OBJECTS,
@@ -16,8 +17,8 @@ from sqjax.scenes import (
     multipart_scene,
     paper_scene,
     random_scene,
-    render,
 )
+from sqjax.superquadric import Superquadric, contains, inside_outside
 
 SHAPE = (60, 80)
 
@@ -181,12 +182,12 @@ def test_render_without_embree_matches(monkeypatch):
     """The pure numpy ray caster (used when embreex is missing) gives the same image."""
     from trimesh.ray.ray_triangle import RayMeshIntersector
 
-    import sqjax.scenes as scenes
+    import sqjax.raycast as raycast
 
     parts, shape = _two_parts(), (24, 32)
     camera = default_camera(shape)
     fast = render(parts, camera, shape, resolution=24)
-    monkeypatch.setattr(scenes, "_intersector", RayMeshIntersector)
+    monkeypatch.setattr(raycast, "_intersector", RayMeshIntersector)
     slow = render(parts, camera, shape, resolution=24)
     assert (fast.labels != slow.labels).sum() <= 2
     same = (fast.labels == slow.labels) & fast.valid

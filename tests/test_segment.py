@@ -4,9 +4,12 @@ import numpy as np
 import pytest
 
 import sqjax
-from sqjax import PinholeCamera, RangeImage, hoover, paper_scene, segment
+from sqjax import PinholeCamera, RangeImage, hoover, segment
+from sqjax.evaluate import volume_iou
+from sqjax.mesh import sample_surface
+from sqjax.scenes import paper_scene, random_scene
 
-from conftest import data_path
+from helpers import mosd_image
 
 
 @pytest.fixture(scope="module", params=["sphere_cylinder", "two_cylinders", "occluded_block"])
@@ -55,7 +58,7 @@ def test_parts_explain_the_truth_volumes(paper_result):
     name, image, truth, seg = paper_result
     score = hoover(image.labels, seg.labels)
     for t, f in score.correct_pairs:
-        iou = sqjax.volume_iou(truth[t - 1], seg.parts[f - 1].superquadric, n=20_000)
+        iou = volume_iou(truth[t - 1], seg.parts[f - 1].superquadric, n=20_000)
         assert iou > 0.3, (name, t, iou)
 
 
@@ -76,9 +79,7 @@ def test_flat_plane_is_one_part():
 def test_unorganised_cloud_with_knn_adjacency():
     a = sqjax.Superquadric.create([1, 1, 1])
     b = sqjax.Superquadric.create([1, 0.5, 0.7], [0.3, 0.3], translation=[4, 0, 0])
-    pts = np.concatenate(
-        [sqjax.sample_surface(a, 1500, seed=1, noise=0.005), sqjax.sample_surface(b, 1500, seed=2, noise=0.005)]
-    )
+    pts = np.concatenate([sample_surface(a, 1500, seed=1, noise=0.005), sample_surface(b, 1500, seed=2, noise=0.005)])
     seg = segment(pts)
     assert len(seg.parts) == 2 and seg.labels.shape == (3000,)
     la, lb = np.bincount(seg.labels[:1500]).argmax(), np.bincount(seg.labels[1500:]).argmax()
@@ -107,34 +108,34 @@ def test_bad_input_type():
 
 def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     """A refit of K hypotheses (one per growth step, one per seed start) is ceil(K / size) calls of the
-    batch kernel, all of one of the few fixed batch sizes (`fitting.call_size`), so growth steps do not
+    batch kernel, all of one of the few fixed batch sizes (`padding.call_size`), so growth steps do not
     recompile."""
-    from sqjax import fitting, recovery
+    from sqjax import padding, workspace
 
     calls, refits = [], []
-    real, real_refit = recovery.fit_padded, recovery._Runner.fit
+    real, real_refit = workspace.fit_padded, workspace.Workspace.fit
 
     def record(points, mask, theta0, opts):
         calls.append(points.shape[:2])
         return real(points, mask, theta0, opts)
 
-    def record_refit(self, regions, theta0, steps, **kw):
+    def record_refit(self, regions, theta0, **kw):
         before = len(calls)
-        out = real_refit(self, regions, theta0, steps, **kw)
+        out = real_refit(self, regions, theta0, **kw)
         refits.append((len(regions), len(calls) - before, len(set(calls[before:]))))
         return out
 
-    monkeypatch.setattr(recovery, "fit_padded", record)
-    monkeypatch.setattr(recovery._Runner, "fit", record_refit)
+    monkeypatch.setattr(workspace, "fit_padded", record)
+    monkeypatch.setattr(workspace.Workspace, "fit", record_refit)
     image, _ = paper_scene("two_cylinders", noise=0.002)
     seg = segment(image, merge=False)
     # points: 128 when every region fits (seed windows), else max_points = 512
     assert all(N in (128, 512) for _, N in calls), sorted(set(calls))
-    assert all(K == fitting.call_size(2, N) for K, N in calls), sorted(set(calls))  # CPU: one chunk size
+    assert all(K == padding.call_size(2, N) for K, N in calls), sorted(set(calls))  # CPU: one chunk size
     assert all(shapes == 1 for _, _, shapes in refits), refits
     assert sum(made for _, made, _ in refits) == len(calls)
     assert any(made > 1 for _, made, _ in refits)  # the seeds: more than one call
-    rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().reseed)  # seeds, and each reseeding round
+    rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().extras.reseed)  # seeds, and each reseeding round
     # the three starts of the seeds, then a step each, then the five starts of the parts' volumes
     assert len(refits) <= 3 * rounds + seg.stats["growth_steps"] + 5
     assert len(set(calls)) <= 6, sorted(set(calls))
@@ -142,7 +143,7 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
 
 def test_free_components_follow_the_adjacency():
     """Connected unexplained pieces along the (cut) adjacency, filtered by size."""
-    from sqjax.recovery import free_components
+    from sqjax.domain import free_components
 
     # a chain 0-1-2, a cut, then 3-4, and 5 alone
     nb = np.array([[1, -1], [0, 2], [1, -1], [4, -1], [3, -1], [-1, -1]])
@@ -156,7 +157,7 @@ def test_free_components_follow_the_adjacency():
 def test_reseeding_finds_a_part_whose_hypotheses_lost_early():
     """With reseeding off (the paper's single pass) a part may end unexplained; the second chance
     never loses a correct detection and only adds parts that explain data."""
-    image, truth = sqjax.random_scene(4, n_parts=(2, 6), shape=(120, 160), noise=0.005)
+    image, truth = random_scene(4, n_parts=(2, 6), shape=(120, 160), noise=0.005)
     single = segment(image, reseed=0)
     again = segment(image)
     s1, s2 = hoover(image.labels, single.labels), hoover(image.labels, again.labels)
@@ -164,18 +165,9 @@ def test_reseeding_finds_a_part_whose_hypotheses_lost_early():
     assert again.stats["reseeded"] > 0 and single.stats["reseeded"] == 0
 
 
-def _mosd_image(name: str):
-    """mOSD scene `name` at 160 x 120 and its truth (label // 10 per object, the table one region);
-    skips when ../shared/data is absent."""
-    folder = "learn" if name.startswith("learn") else "test"
-    image = sqjax.read_range_image(data_path("mosd", folder, f"{name}.pcd")).subsample(4)
-    labels = image.labels
-    return image, np.where(labels >= 10, labels // 10, np.where(labels > 0, 1, 0))
-
-
 def _mosd_scores(name: str, tolerances=(0.8,)) -> list:
     """Hoover scores of one segmentation of mOSD scene `name` at 160 x 120, one per tolerance."""
-    image, truth = _mosd_image(name)
+    image, truth = mosd_image(name)
     found = segment(image).labels
     return [hoover(truth, found, tolerance=t) for t in tolerances]
 
@@ -202,7 +194,7 @@ def test_mosd_unexplained_surface_takes_the_label_it_joins():
     a real scene changes with float32 rounding, a relative change of 1e-6 in the depths changes the
     label image of learn2, test7 and test24, benchmarks/RESULTS.md, so one scene's count is no
     property.)"""
-    image, truth = _mosd_image("test7")
+    image, truth = mosd_image("test7")
     plain, filled = segment(image, propagate=False).labels, segment(image).labels
     assert np.array_equal(filled[plain > 0], plain[plain > 0])
     assert (filled > 0).sum() > (plain > 0).sum() and not np.any(filled[~image.valid])
@@ -255,8 +247,8 @@ def test_mosd_touching_parts_stay_apart(name, n_objects):
     ],
 )
 def test_bad_options_are_refused_at_construction_naming_the_field(field, value):
-    with pytest.raises(ValueError, match=f"SegmentOptions: {field} must be"):
-        sqjax.SegmentOptions(**{field: value})
+    with pytest.raises(ValueError, match=rf"Options\.{field} must be|must be .*\(option {field}\)"):
+        sqjax.SegmentOptions.create(**{field: value})
     with pytest.raises(ValueError, match=field):  # the same through segment's keywords, before any work
         segment(np.full((3, 3, 3), np.nan), **{field: value})
 
@@ -265,7 +257,7 @@ def test_quadtree_seeds_reach_parts_smaller_than_a_window():
     """Seeds at several scales (issue 11): a 9 x 9 pixel part has no 10 x 10 window clear of its depth
     edges, so whole windows never seed it; the quadrants of the windows that fail do, down to the
     smallest window that holds min_seed_points, and no seed straddles a depth edge."""
-    from sqjax.recovery import _seed_windows
+    from sqjax.seeds import seed_windows
 
     H, W, window, stride, min_seed = 40, 50, 10, 5, 22
     idmap = np.arange(H * W).reshape(H, W)
@@ -276,10 +268,10 @@ def test_quadtree_seeds_reach_parts_smaller_than_a_window():
         for shift in (1, -1):
             broken |= part != np.roll(part, shift, axis)
     broken = broken.ravel()
-    whole, fine, smallest = _seed_windows(idmap, broken, window, stride, min_seed, subdivide=False)
+    whole, fine, smallest = seed_windows(idmap, broken, window, stride, min_seed, subdivide=False)
     assert fine == [] and smallest == window
     assert not any(part.ravel()[ids].any() for ids in whole)
-    whole2, fine, smallest = _seed_windows(idmap, broken, window, stride, min_seed, subdivide=True)
+    whole2, fine, smallest = seed_windows(idmap, broken, window, stride, min_seed, subdivide=True)
     assert len(whole2) == len(whole) and all(np.array_equal(a, b) for a, b in zip(whole, whole2, strict=True))
     assert smallest == int(np.ceil(np.sqrt(min_seed))) == 5
     inside = [ids for ids in fine if part.ravel()[ids].all()]
@@ -290,15 +282,15 @@ def test_quadtree_seeds_reach_parts_smaller_than_a_window():
 
 def test_knn_is_exact():
     """The k-d tree neighbours are the brute-force nearest ones, the point itself excluded."""
-    from sqjax.recovery import _knn
+    from sqjax.domain import knn
 
     P = np.random.default_rng(0).normal(size=(500, 3))
-    nb = _knn(P, 6)
+    nb = knn(P, 6)
     d = np.linalg.norm(P[:, None] - P[None], axis=-1)
     np.fill_diagonal(d, np.inf)
     np.testing.assert_array_equal(np.sort(nb, 1), np.sort(np.argsort(d, 1)[:, :6], 1))
     assert not np.any(nb == np.arange(500)[:, None])
-    assert _knn(P[:3], 6).shape == (3, 6) and np.all(_knn(P[:3], 6)[:, 2:] == -1)
+    assert knn(P[:3], 6).shape == (3, 6) and np.all(knn(P[:3], 6)[:, 2:] == -1)
 
 
 def test_cloud_labels_stay_aligned_with_the_input_rows():
@@ -306,9 +298,7 @@ def test_cloud_labels_stay_aligned_with_the_input_rows():
     are rows of the input)."""
     a = sqjax.Superquadric.create([1, 1, 1])
     b = sqjax.Superquadric.create([1, 0.5, 0.7], [0.3, 0.3], translation=[4, 0, 0])
-    pts = np.concatenate(
-        [sqjax.sample_surface(a, 800, seed=1, noise=0.005), sqjax.sample_surface(b, 800, seed=2, noise=0.005)]
-    )
+    pts = np.concatenate([sample_surface(a, 800, seed=1, noise=0.005), sample_surface(b, 800, seed=2, noise=0.005)])
     holed = pts.copy()
     holed[::7] = np.nan
     seg = segment(holed)
@@ -323,20 +313,20 @@ def test_cloud_labels_stay_aligned_with_the_input_rows():
 
 def test_merge_candidates_grow_linearly_with_the_models():
     """A scene of many selected pieces must not cost a union fit per pair (28k on a 239-piece plane)."""
-    from sqjax.segment import MERGE_NEIGHBOURS, _merge_candidates
+    from sqjax.postprocess import MERGE_NEIGHBOURS, merge_candidates
 
     pts = np.random.default_rng(1).normal(size=(4000, 3))
     regions = np.zeros((200, 4000), bool)
     regions[np.arange(4000) % 200, np.arange(4000)] = True
-    pairs = _merge_candidates(pts, regions)
+    pairs = merge_candidates(pts, regions)
     assert len(pairs) <= MERGE_NEIGHBOURS * 200 and {i for p in pairs for i in p} == set(range(200))
-    assert len(_merge_candidates(pts, regions[:5])) == 10  # few models: every pair, as before
+    assert len(merge_candidates(pts, regions[:5])) == 10  # few models: every pair, as before
 
 
 def test_large_images_are_segmented_at_a_working_resolution_and_labelled_in_full():
     """A 240 x 320 image is segmented at 120 x 160 (step 2) and every full-size pixel is labelled by
     the final models: the same parts are found, with labels at the input's size."""
-    image, truth = sqjax.random_scene(3, n_parts=3, shape=(240, 320), noise=0.005)
+    image, truth = random_scene(3, n_parts=3, shape=(240, 320), noise=0.005)
     seg = segment(image)
     assert seg.stats["subsample"] == 2 and seg.labels.shape == (240, 320)
     score = hoover(image.labels, seg.labels, tolerance=0.8)
@@ -349,7 +339,7 @@ def test_large_images_are_segmented_at_a_working_resolution_and_labelled_in_full
 def test_noise_exponent_from_residuals_at_several_depths():
     """The Theil-Sen slope of log residual against log depth recovers sigma ~ z^k (k = 2 and 0), and
     is robust to a few seeds whose residual is a modelling error."""
-    from sqjax.recovery import noise_exponent
+    from sqjax.domain import noise_exponent
 
     rng = np.random.default_rng(0)
     z = rng.uniform(0.6, 1.6, 300)
@@ -380,57 +370,51 @@ def test_a_model_in_front_of_the_data_violates_free_space():
     solid seen from its front), one in front of it (explaining it with its far face). The camera saw
     through the second one: it fills the free space in front of every wall pixel it covers; the first
     one fills none."""
-    import jax.numpy as jnp
-
-    from sqjax import recovery
+    from sqjax.segmentation import workspace
+    from sqjax.visibility import free_space_violations
 
     image = RangeImage(np.full((40, 40), 5.0), PinholeCamera(40, 40, 19.5, 19.5))
-    opts = sqjax.SegmentOptions(noise=0.01, rings=4)
-    dom, noise, tau = recovery._domain(image, opts, 8)
-    run = recovery._Runner(dom, opts, noise, tau, jnp.float32)
-    centre = run.centre
+    ws = workspace(image, sqjax.SegmentOptions.create(noise=0.01, rings=4))
+    dom, centre = ws.dom, ws.centre
     half = 0.1
 
-    def slab(z):  # a 2 x 2 x 0.2 box centred at depth z, in the runner's centred frame
+    def slab(z):  # a 2 x 2 x 0.2 box centred at depth z, in the workspace's centred frame
         return np.r_[np.log([1.0, 1.0, half]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([0.0, 0.0, z]) - centre]
 
     behind, in_front = slab(5.0 + half), slab(5.0 - half)
-    v = run.free_space_violations(np.stack([behind, in_front]))
+    v = free_space_violations(ws, np.stack([behind, in_front]))
     covered = np.sum(np.all(np.abs(dom.points[:, :2]) < 1.0, 1))  # wall pixels in the slab's footprint
     assert v[0] == 0 and v[1] >= 0.9 * covered > 0, (v, covered)
-    assert np.array_equal(run.free_space_violations(np.stack([behind, in_front]), box=True), v)
+    assert np.array_equal(free_space_violations(ws, np.stack([behind, in_front]), box=True), v)
     # a bar 40 m long and 0.1 m thick across the rays, 0.3 m in front of the wall: the bounding sphere's
     # chord samples it every 2.5 m; the box's chord (`box=True`, what `part_volumes` scores with) across
     # its 0.1 m, so each wall pixel behind it counts. One behind the camera contradicts nothing.
     bar = np.r_[np.log([20.0, 0.1, 0.05]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([0.0, 0.0, 4.7]) - centre]
     behind_camera = bar.copy()
     behind_camera[10] = -1.0 - centre[2]
-    v = run.free_space_violations(np.stack([bar, behind_camera]), box=True)
+    v = free_space_violations(ws, np.stack([bar, behind_camera]), box=True)
     row = np.sum(np.abs(dom.points[:, 1]) < 0.1 * 4.7 / 5.0)  # wall pixels in the bar's shadow
     assert v[0] >= 0.9 * row > 0 and v[1] == 0, (v, row)
-    assert run.free_space_violations(np.stack([bar]))[0] < 0.5 * row  # what the sphere's chord sees
+    assert free_space_violations(ws, np.stack([bar]))[0] < 0.5 * row  # what the sphere's chord sees
 
 
 def test_a_model_where_the_camera_saw_nothing_violates_free_space():
     """Pixels with no return are free space along their whole ray: a box beside the observed wall patch,
     where every pixel is empty, is hit by the empty rays its silhouette covers; a box behind the wall,
     inside the patch's silhouette, by none."""
-    import jax.numpy as jnp
-
-    from sqjax import recovery
+    from sqjax.segmentation import workspace
+    from sqjax.visibility import void_violations
 
     depth = np.full((40, 40), np.nan)
     depth[10:30, 10:30] = 5.0
     image = RangeImage(depth, PinholeCamera(40, 40, 19.5, 19.5))
-    opts = sqjax.SegmentOptions(noise=0.01, rings=4)
-    dom, noise, tau = recovery._domain(image, opts, 8)
-    run = recovery._Runner(dom, opts, noise, tau, jnp.float32)
+    ws = workspace(image, sqjax.SegmentOptions.create(noise=0.01, rings=4))
 
-    def box(x, z):  # a 0.6 x 0.6 x 0.2 box centred at (x, 0, z), in the runner's centred frame
-        return np.r_[np.log([0.3, 0.3, 0.1]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([x, 0.0, z]) - run.centre]
+    def box(x, z):  # a 0.6 x 0.6 x 0.2 box centred at (x, 0, z), in the workspace's centred frame
+        return np.r_[np.log([0.3, 0.3, 0.1]), 0.1, 0.1, 0.0, 0.0, 0.0, np.array([x, 0.0, z]) - ws.centre]
 
     # the wall spans x in [-1.25, 1.35] at depth 5.2; the second box covers about 5 x 5 empty pixels
-    v = run.void_violations(np.stack([box(0.0, 5.2), box(2.0, 5.2)]))
+    v = void_violations(ws, np.stack([box(0.0, 5.2), box(2.0, 5.2)]))
     assert v[0] == 0 and v[1] >= 10, v
 
 
@@ -460,7 +444,7 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
     assert len(pairs) >= 3
 
     def ious(s):
-        return np.array([sqjax.volume_iou(truth[m - 1], s.parts[n - 1].superquadric, n=20_000) for m, n in pairs])
+        return np.array([volume_iou(truth[m - 1], s.parts[n - 1].superquadric, n=20_000) for m, n in pairs])
 
     iou, before = ious(seg), ious(grown)
     # the top near the truth; the legs, 2-3 px wide, of about their length (before: up to 900 m long)
@@ -471,3 +455,32 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
     for i, p in enumerate(seg.parts):  # regions: labelled points it explains
         assert p.num_explained == p.region.size <= p.num_points == np.sum(seg.labels == i + 1)
         assert np.all(seg.labels.ravel()[p.region] == i + 1)
+
+
+def test_each_segmentation_kernel_compiles_once_per_padded_shape():
+    """Every jitted kernel that segmentation calls is fed padded shapes (`sqjax.padding`): over three
+    scenes, two of one size and one of another, each holds no more compiled variants than its padding
+    policy allows (a guard against a kernel that recompiles per growth step, per number of hypotheses
+    or per scene)."""
+    import jax
+
+    from sqjax import chart, initial, solver, visibility, workspace
+
+    from helpers import compiled_variants
+
+    kernels = {  # kernel: most variants over the three scenes
+        "fit": (solver.fit_padded, 4),  # N in {128, max_points} x (warm start, multistart)
+        "pair distances": (workspace._pair_distances, 4 * 2),  # 4 chunk sizes x 2 point-row sizes
+        "free space": (visibility._free_space, 4 * 2),
+        "free space (box)": (visibility._free_space_box, 4 * 2),
+        "models to the world": (chart._world, 5),  # powers of two >= 8 up to the hypotheses of a scene
+        "volumes": (chart._volumes, 5),
+        "starts' rotations": (initial._log_rotations, 6),  # powers of two >= 32 up to the seed count
+    }
+    jax.clear_caches()
+    for seed, shape in ((1, (120, 160)), (2, (120, 160)), (3, (96, 128))):
+        image, _ = random_scene(seed, n_parts=(2, 4), shape=shape, noise=0.005)
+        segment(image)
+    made = {name: compiled_variants(fn) for name, (fn, _) in kernels.items()}
+    assert all(made[name] <= most for name, (_, most) in kernels.items()), made
+    assert made["fit"] >= 1 and made["pair distances"] >= 1, made  # the counter sees the kernels

@@ -87,16 +87,16 @@ def kernel_dir(tmp_path):
 
 def _traces(monkeypatch):
     """A counter of how often the fit kernel's body is traced."""
-    from sqjax import fitting
+    from sqjax import solver
 
     count = [0]
-    real = fitting._map_problems
+    real = solver.map_problems
 
     def counted(*a):
         count[0] += 1
         return real(*a)
 
-    monkeypatch.setattr(fitting, "_map_problems", counted)
+    monkeypatch.setattr(solver, "map_problems", counted)
     return count
 
 
@@ -136,6 +136,7 @@ def jax_leaves(tree):
     return [np.asarray(v) for v in jax.tree.leaves(tree)]
 
 
+@pytest.mark.slow
 def test_a_kept_kernel_is_bypassed_under_transformations(kernel_dir):
     """Under `jax.grad` the arguments are tracers: the kernel runs as traced (gradients unchanged)."""
     import jax
@@ -159,6 +160,7 @@ def test_default_cache_dir(monkeypatch, tmp_path):
     assert not cache_disabled_by_env()
 
 
+@pytest.mark.slow
 def test_cli_fills_the_cache_unless_told_not_to(tmp_path):
     pts = tmp_path / "p.xyz"
     np.savetxt(pts, np.random.default_rng(0).normal(size=(64, 3)) * [0.3, 0.2, 0.1])
@@ -182,9 +184,9 @@ def test_figure_and_progress_dependencies_are_core():
     assert {"matplotlib", "tqdm"} <= names
 
 
-def test_importing_the_segment_module_keeps_the_segment_function():
+def test_importing_the_segmentation_module_keeps_the_segment_function():
     import importlib
 
-    module = importlib.import_module("sqjax.segment")  # as `from sqjax.segment import ...` does
+    module = importlib.import_module("sqjax.segmentation")  # as `from sqjax.segmentation import ...` does
     assert sqjax.segment is module.segment and callable(sqjax.segment)
     assert sqjax.evaluate is importlib.import_module("sqjax.evaluate")  # public modules stay modules

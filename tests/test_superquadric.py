@@ -7,17 +7,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sqjax import (
+from sqjax import rotation as so3
+from sqjax.mesh import sample_surface, to_trimesh
+from sqjax.superquadric import (
     Superquadric,
     contains,
     distance,
     inside_outside,
     radial_distance,
     residual,
-    sample_surface,
-    to_trimesh,
 )
-from sqjax import rotation as so3
 
 SHAPES = [  # (size, epsilon, extra keywords)
     ((1.0, 0.6, 1.4), (1.0, 1.0), {}),
@@ -209,7 +208,7 @@ def test_create_euler_and_rotation_agree():
 def test_segmentation_distance_kernel_matches_eq10(size, eps):
     """The closed-form eq. 10 kernel of segmentation (model, point pairs; no autodiff) gives the
     autodiff `distance` for undeformed models, and is finite at the hard points."""
-    from sqjax.recovery import _pair_distances
+    from sqjax.workspace import _pair_distances
 
     sq = _sq(size, eps, {})
     theta = jnp.concatenate([jnp.log(sq.size), sq.epsilon, so3.log(sq.rotation), sq.translation])[None]
@@ -272,7 +271,7 @@ def test_bending_round_trip_and_formula_for_small_k(k):
 
     Forward bending against the textbook formula (float64), and unbend(bend(x)) == x, in mm-sized
     coordinates (|x| up to 100) where k = 1e-4 moves points by ~0.5."""
-    from sqjax.superquadric import bend_points, unbend
+    from sqjax.deformation import bend_points, unbend
 
     rng = np.random.default_rng(0)
     x = rng.uniform(-100, 100, (500, 3))
@@ -300,7 +299,7 @@ def test_bending_round_trip_and_formula_for_small_k(k):
 
 
 def test_bending_gradient_finite_at_zero_curvature():
-    from sqjax.superquadric import bend_points, unbend
+    from sqjax.deformation import bend_points, unbend
 
     x = jnp.asarray(np.random.default_rng(1).uniform(-2, 2, (50, 3)), jnp.float32)
     for f in (bend_points, unbend):

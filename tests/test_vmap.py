@@ -10,24 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import sqjax.fitting as fitting
-from sqjax import Superquadric, sample_surface
+import sqjax.initial as initial
+import sqjax.lm as lm
+import sqjax.solver as solver
 from sqjax.fitting import FitOptions, fit
 
-
-def problems(K, n, seed=0):
-    rng = np.random.default_rng(seed)
-    out = []
-    for _ in range(K):
-        sq = Superquadric.create(
-            rng.uniform(0.5, 2.0, 3),
-            rng.uniform(0.3, 1.7, 2),
-            euler=rng.uniform(-3, 3, 3),
-            translation=rng.uniform(-1, 1, 3),
-        )
-        view = np.asarray(sq.translation) + 10 * rng.standard_normal(3)
-        out.append(sample_surface(sq, n, seed=int(rng.integers(1000)), noise=0.01, viewpoint=view))
-    return np.stack(out)
+from helpers import one_view_batch
 
 
 def _same_fit(a, b, rtol=1e-4):
@@ -41,7 +29,7 @@ def _same_fit(a, b, rtol=1e-4):
 
 def test_batch_equals_loop_of_single_fits():
     # K = 30 is padded to 32 (and N = 200 to 256: the kernel test_fitting.py compiles too)
-    pts = problems(30, 200)
+    pts = one_view_batch(30, 200)
     batched = fit(pts)
     for k in range(0, 30, 6):
         single = fit(pts[k])
@@ -51,13 +39,13 @@ def test_batch_equals_loop_of_single_fits():
 
 def test_jit_equals_no_jit():
     """The LM kernel's normal equations (cost, J^T J, J^T r) compiled and run op by op."""
-    pts = jnp.asarray(problems(1, 24, seed=1)[0].T, jnp.float32)
+    pts = jnp.asarray(one_view_batch(1, 24, seed=1)[0].T, jnp.float32)
     mask = jnp.arange(24) < 20
     opts = FitOptions(multistart=False)
 
     def run(p, m):
-        start = jax.tree.map(lambda v: v[1], fitting._moment_starts(p, m))
-        return fitting._normal_equations(start, p, m, opts)
+        start = jax.tree.map(lambda v: v[1], initial.moment_starts(p, m))
+        return lm._normal_equations(start, p, m, opts)
 
     jitted = jax.jit(run)(pts, mask)
     with jax.disable_jit():
@@ -67,10 +55,10 @@ def test_jit_equals_no_jit():
 
 
 def test_kernel_traces_once_per_bucket(monkeypatch):
-    counted = eqx.debug.assert_max_traces(fitting._map_problems, max_traces=None)
-    monkeypatch.setattr(fitting, "_map_problems", counted)
+    counted = eqx.debug.assert_max_traces(solver.map_problems, max_traces=None)
+    monkeypatch.setattr(solver, "map_problems", counted)
     opts = FitOptions(max_steps=2, multistart=False)  # a fresh compile-cache key for this test
-    pts = problems(2, 100, seed=2)
+    pts = one_view_batch(2, 100, seed=2)
     for n in (40, 50, 64):  # growth steps inside one bucket (128): one trace
         fit(pts[:, :n], options=opts)
     fit(pts[:, :60], mask=np.broadcast_to(np.arange(60) < 50, (2, 60)), options=opts)
@@ -80,13 +68,13 @@ def test_kernel_traces_once_per_bucket(monkeypatch):
 _TWO_DEVICES = textwrap.dedent("""
     import jax, numpy as np, jax.numpy as jnp
     import sqjax.fitting as fitting
-    from sqjax.fitting import FitOptions, fit, _use_devices
-    assert jax.device_count() == 2 and _use_devices(4)
+    from sqjax.fitting import FitOptions, fit
+    assert jax.device_count() == 2 and fitting.use_devices(4)
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(4, 64, 3)) * np.array([1.0, 0.6, 0.3])
     opts = FitOptions(max_steps=3, multistart=False, robust=True)
     sharded = fit(pts, options=opts)
-    fitting._use_devices = lambda K: False            # the same call on one device
+    fitting.use_devices = lambda K: False            # the same call on one device
     single = fit(pts, options=opts)
     assert np.array_equal(np.asarray(sharded.cost), np.asarray(single.cost))
     assert np.array_equal(np.asarray(sharded.distance), np.asarray(single.distance))

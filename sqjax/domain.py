@@ -1,0 +1,249 @@
+"""The domain of the hypotheses: the valid points of a range image or cloud, their adjacency (cut at
+depth discontinuities), connected components, and the sensor noise estimated from the data.
+
+Host side, numpy. Range images: pixels are adjacent to their 8 neighbours unless the 3-D step between
+them is a depth discontinuity; clouds: k nearest neighbours (a k-d tree). Growth admits only points
+adjacent to a region (`Domain.dilate`), as the paper searches near a region's border.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
+
+OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))  # 8-neighbours (row, col)
+
+
+@dataclasses.dataclass(frozen=True)
+class Domain:
+    """The data as the hypotheses see it: valid points, their adjacency, and where the camera looked.
+
+    - `points` (P, 3) float64: the valid points (camera frame for range images).
+    - `neighbours` (P, k) int: adjacent points (8-neighbours of a pixel, or k nearest neighbours of a
+      cloud point), -1 for none or where a depth discontinuity cuts the adjacency.
+    - `index` (P,): the flat pixel index (images) or the row of the input (clouds) of each point.
+    - `shape`: the shape of the label output, (H, W) or (n_rows,).
+    - `edges` (8, H, W) bool (images): pixel joined to its `OFFSETS[k]` neighbour.
+    - `views` (P, 3): unit viewing rays (images); None = unknown (clouds).
+    - `void_rays` (Q, 3): unit viewing rays of the pixels with no return (pinhole images).
+    - `broken` (P,) bool (images): points whose adjacency a depth discontinuity cuts.
+    - `seeds`: index arrays, one per seed window (`seeds.image_seeds`, `seeds.cloud_seeds`); `seed_size`:
+      points in the smallest seed window (the smallest part seeded).
+    """
+
+    points: np.ndarray
+    neighbours: np.ndarray
+    index: np.ndarray
+    shape: tuple
+    edges: np.ndarray | None = None
+    views: np.ndarray | None = None
+    void_rays: np.ndarray | None = None
+    broken: np.ndarray | None = None
+    seeds: list = dataclasses.field(default_factory=list)
+    seed_size: int = 0
+
+    @property
+    def is_image(self) -> bool:
+        return self.edges is not None
+
+    def dilate(self, regions, rings: int):
+        """Regions (M, P) bool grown by `rings` steps along the adjacency.
+
+        Images: shifted slices of the (M, H, W) pixel grid, masked by the edges (a memory copy per
+        direction, not a gather). Clouds: a gather per neighbour column. (M, P) temporaries only."""
+        if self.edges is None:
+            return _dilate_cloud(regions, self.neighbours, rings)
+        H, W = self.shape
+        M = regions.shape[0]
+        g = np.zeros((M, H * W), bool)
+        g[:, self.index] = regions
+        g = g.reshape(M, H, W)
+        for _ in range(rings):
+            step = g.copy()
+            for (dr, dc), edge in zip(OFFSETS, self.edges):
+                dst = (slice(max(-dr, 0), H - max(dr, 0)), slice(max(-dc, 0), W - max(dc, 0)))
+                src = (slice(max(dr, 0), H + min(dr, 0)), slice(max(dc, 0), W + min(dc, 0)))
+                step[(slice(None),) + dst] |= g[(slice(None),) + src] & edge[dst]
+            g = step
+        return g.reshape(M, H * W)[:, self.index]
+
+
+def image_domain(image: RangeImage, jump_factor: float, noise: float) -> Domain:
+    """The domain of a range image: its valid pixels, 8-adjacent unless the 3-D step between them is a
+    depth discontinuity (more than `jump_factor` times the typical step plus 6 `noise`)."""
+    H, W = image.shape
+    valid = image.valid
+    pts = image.points
+    flat = np.flatnonzero(valid)
+    idmap = pixel_map(flat, (H, W))
+    P = pts.reshape(-1, 3)[flat]
+    rr, cc = np.divmod(flat, W)
+    nb = -np.ones((flat.size, 8), np.int64)
+    steps = np.full((flat.size, 8), np.inf)
+    for k, (dr, dc) in enumerate(OFFSETS):
+        r2, c2 = rr + dr, cc + dc
+        ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
+        j = np.where(ok, idmap[np.clip(r2, 0, H - 1), np.clip(c2, 0, W - 1)], -1)
+        nb[:, k] = j
+        good = j >= 0
+        steps[good, k] = np.linalg.norm(P[good] - P[j[good]], axis=1) / np.hypot(dr, dc)
+    typical = np.median(steps[np.isfinite(steps)]) if np.isfinite(steps).any() else 1.0
+    jump = steps > jump_factor * typical + 6.0 * noise
+    cut = (nb >= 0) & jump
+    nb[cut] = -1
+    edges = np.zeros((len(OFFSETS), H * W), bool)
+    edges[:, flat] = (nb >= 0).T
+    void = None
+    if isinstance(image.camera, PinholeCamera):  # the camera saw no surface along these rays
+        rays = image.camera.rays((H, W))[~valid]
+        void = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return Domain(
+        P,
+        nb,
+        flat,
+        (H, W),
+        edges=edges.reshape(len(OFFSETS), H, W),
+        views=viewing_rays(image, P),
+        void_rays=void,
+        broken=np.asarray(cut.any(1)),
+    )
+
+
+def pixel_map(flat: np.ndarray, shape) -> np.ndarray:
+    """(H, W) map from pixel to the index of its point among the valid pixels `flat`, -1 if invalid."""
+    idmap = -np.ones(shape[0] * shape[1], np.int64)
+    idmap[flat] = np.arange(flat.size)
+    return idmap.reshape(shape)
+
+
+def cloud_domain(points: np.ndarray, rows: np.ndarray, n_rows: int, nb: np.ndarray) -> Domain:
+    """The domain of points (P, 3) that are rows `rows` of an (n_rows, 3) input; nb (P, k) their nearest
+    neighbours (`knn`), cut beyond 4 times the median neighbour distance."""
+    P = np.asarray(points, np.float64)
+    d = np.linalg.norm(P[np.maximum(nb, 0)] - P[:, None], axis=-1)
+    nb = np.where((nb < 0) | (d > 4.0 * np.median(d[nb >= 0])), -1, nb)
+    return Domain(P, nb, rows, (n_rows,))
+
+
+def estimate_noise(image: RangeImage) -> float:
+    """Robust depth-noise std from second differences of the depth along rows and columns.
+
+    For a smooth surface z(u-1) - 2 z(u) + z(u+1) has std sqrt(6) sigma; the median absolute value
+    (/0.6745) ignores edges. Floored at 1e-4 of the median depth.
+    """
+    z = image.depth.astype(np.float64)
+    d = np.concatenate([(z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel(), (z[:-2] - 2 * z[1:-1] + z[2:]).ravel()])
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return float(1e-3 * np.nanmedian(np.abs(z))) if np.isfinite(z).any() else 1.0
+    sigma = np.median(np.abs(d)) / 0.6745 / np.sqrt(6.0)
+    return float(max(sigma, 1e-4 * np.nanmedian(np.abs(z))))
+
+
+def noise_exponent(depth: np.ndarray, sigma: np.ndarray, bins: int = 5) -> float:
+    """The exponent k of a depth-noise model sigma(z) = sigma_ref (z / z_ref)^k, from local residuals.
+
+    `depth` (S,) and `sigma` (S,): the depth of each seed window and the robust std of its fit's
+    residuals. Structured-light and stereo depth noise grows about as z^2 (Khoshelham & Elberink
+    2012); one noise at every depth gives 0. A seed's residual is the noise plus its model's error
+    (an edge, a curved patch), so the noise at a depth is the floor of the residuals there: the
+    seeds are put in `bins` depth quantiles, the lower quartile of sigma taken in each, and k is the
+    least-squares slope of its log against log depth, clipped to [0, 2]. Fewer than 8 seeds per bin
+    or a depth range under 20% give 0."""
+    ok = np.isfinite(depth) & np.isfinite(sigma) & (depth > 0) & (sigma > 0)
+    lz, ls = np.log(depth[ok]), np.log(sigma[ok])
+    bins = min(bins, lz.size // 8)
+    if bins < 3 or lz.max() - lz.min() < np.log(1.2):
+        return 0.0
+    order = np.argsort(lz)
+    groups = np.array_split(order, bins)
+    x = np.array([np.median(lz[g]) for g in groups])
+    y = np.array([np.quantile(ls[g], 0.25) for g in groups])
+    return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, 2.0))
+
+
+def plane_residual(q: np.ndarray) -> float:
+    """Std of points q (n, 3) about their least-squares plane (unbiased for the 3 fitted dof)."""
+    n = q.shape[0]
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(q.T))[0], 0.0) * (n - 1) / max(n - 3, 1)))
+
+
+def robust_centre(points: np.ndarray, far: float = 100.0) -> np.ndarray:
+    """The frame of the models: the mean of the points (P, 3) within `far` median radii of their median,
+    so that one far outlier (a depth pixel at 1e30) does not move it; the plain mean otherwise."""
+    med = np.median(points, 0)
+    r = np.linalg.norm(points - med, axis=1)
+    near = r <= far * max(float(np.median(r)), 1e-30)
+    return points[near].mean(0)
+
+
+def noise_scale(points: np.ndarray, k: float, z_ref: float) -> np.ndarray:
+    """(z / z_ref)^k of camera-frame points (P, 3): their noise in units of the noise at depth z_ref."""
+    return (np.abs(points[:, 2]) / z_ref) ** k
+
+
+def viewing_rays(image: RangeImage, P: np.ndarray) -> np.ndarray:
+    """Unit viewing rays (P, 3) of camera-frame points P (P, 3) of `image`."""
+    if isinstance(image.camera, OrthographicCamera):
+        return np.broadcast_to(np.array([0.0, 0.0, 1.0]), P.shape)
+    return P / np.linalg.norm(P, axis=1, keepdims=True)
+
+
+def knn(P, k, queries=None):
+    """Indices (Q, k) of the k nearest points of P (P, 3) to each query (Q, 3), nearest first, by a
+    k-d tree (O(P log P)). queries=None: the neighbours of every point of P, itself excluded (also when
+    duplicates tie with it). Fewer than k points: the columns past P are -1."""
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
+
+    own = queries is None
+    Q = P if own else queries
+    k_eff = min(k + own, P.shape[0])
+    _, idx = cKDTree(P).query(Q, k_eff)
+    idx = np.asarray(idx, np.int64).reshape(Q.shape[0], k_eff)
+    if own:  # drop the query itself (or, if duplicates pushed it out, the farthest)
+        is_self = idx == np.arange(Q.shape[0])[:, None]
+        drop = np.where(is_self.any(1), is_self.argmax(1), k_eff - 1)
+        keep = np.ones_like(idx, bool)
+        keep[np.arange(Q.shape[0]), drop] = False
+        idx = idx[keep].reshape(Q.shape[0], k_eff - 1)
+    return np.pad(idx, ((0, 0), (0, k - idx.shape[1])), constant_values=-1) if idx.shape[1] < k else idx
+
+
+def _dilate_cloud(regions, neighbours, rings):
+    """Regions (M, P) grown by `rings` steps along the adjacency (P, k); (M, P) temporaries only."""
+    cols = [(np.where(nb >= 0, nb, 0), nb >= 0) for nb in neighbours.T]
+    out = regions
+    for _ in range(rings):
+        step = out.copy()
+        for nb, ok in cols:
+            step |= out[:, nb] & ok
+        out = step
+    return out
+
+
+def free_components(free, neighbours, min_size: int, max_size: int | None = None) -> list:
+    """Connected sets of `free` points (P,) bool along the adjacency (P, k), as index arrays, for the
+    components with `min_size` to `max_size` (None: any) points (min-label propagation with pointer
+    jumping)."""
+    P = free.shape[0]
+    label = np.where(free, np.arange(P), P)
+    nb = np.where(neighbours >= 0, neighbours, np.arange(P)[:, None])
+    ok = free[:, None] & free[nb]
+    label_ext = np.append(label, P)
+    while True:
+        cand = np.where(ok, label_ext[nb], P).min(1)
+        new = np.minimum(label, cand)
+        new = np.where(free, new, P)
+        new = np.where(free, np.append(new, P)[new], P)  # pointer jumping: labels are indices
+        if np.array_equal(new, label):
+            break
+        label = new
+        label_ext = np.append(label, P)
+    ids = np.flatnonzero(free)
+    order = np.argsort(label[ids], kind="stable")
+    ids, lab = ids[order], label[ids][order]
+    cuts = np.flatnonzero(np.diff(lab)) + 1
+    return [c for c in np.split(ids, cuts) if min_size <= c.size <= (max_size or P)]

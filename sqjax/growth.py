@@ -1,0 +1,59 @@
+"""Growth (the paper's section 3, step 2): every active hypothesis grows by one step, all refitted in
+one batch.
+
+A step enlarges each model (a1..a3 times `enlarge`), takes the points image-adjacent to its region
+(`rings` rings) that lie inside the enlarged model and near its surface (eq. 10 within
+`admit_factor` tau), refits on the grown region from the current parameters, and keeps the step while
+the region grows and the fit stays acceptable (`keep_fraction` of the grown region within tau);
+otherwise the model stops in its last good state.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .hypotheses import Models, split_by_model
+from .workspace import Workspace
+
+
+def grow(ws: Workspace, models: Models):
+    """One growth step for every active model: enlarge, admit adjacent points near the model, refit.
+
+    Distances are computed only where they are needed: on the candidate ring around each region
+    (admission) and on the grown region after the refit (what stays)."""
+    opts = ws.opts.growth
+    act = np.flatnonzero(models.active)
+    if act.size == 0:
+        return
+    R = models.regions[act]
+    cand = ws.dom.dilate(R, opts.rings) & ~R  # pyright: ignore[reportArgumentType]  (segment() sets rings)
+    k, p = np.nonzero(cand)
+    d, inside, _ = ws.distances(models.theta[act], k, p)
+    factor = np.where(models.loose[act], opts.admit_factor, 1.0)
+    ok = inside & (d < factor[k] * ws.tau)
+    before = R.sum(1)
+    grown = R.copy()
+    grown[k[ok], p[ok]] = True
+    has_new = np.bincount(k[ok], minlength=act.size) > 0
+    models.active[act[~has_new]] = False
+    sel = np.flatnonzero(has_new)
+    if sel.size == 0:
+        return
+    grown = grown[sel]
+    new_theta = ws.fit([np.flatnonzero(g) for g in grown], models.theta[act[sel]])
+    k, p = np.nonzero(grown)
+    d, _, _ = ws.distances(np.nan_to_num(new_theta), k, p)
+    inl = d < ws.tau
+    kept = np.bincount(k[inl], minlength=sel.size)
+    size = np.bincount(k, minlength=sel.size)
+    dist = split_by_model(d[inl], k[inl], sel.size)
+    grown[:] = False
+    grown[k[inl], p[inl]] = True  # now the new regions: the grown points within tau
+    m = act[sel]
+    good = np.isfinite(new_theta).all(1) & (kept >= opts.keep_fraction * size) & (kept > before[sel])
+    retry = ~good & models.loose[m]  # retry with only the points within tau
+    models.active[m[~good & ~retry]] = False  # fit broke down or no growth: keep the last good state
+    models.loose[m[retry]] = False
+    models.theta[m[good]], models.regions[m[good]], models.loose[m[good]] = new_theta[good], grown[good], True
+    for j in np.flatnonzero(good):
+        models.dist[m[j]] = dist[j]

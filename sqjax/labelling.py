@@ -1,0 +1,189 @@
+"""The label image (the paper's output: pixel -> model or none) and the parts it names.
+
+Each explained pixel goes to its nearest final model (`label_image`); with `ExtraOptions.propagate` the
+surface the models leave unexplained is labelled too (`propagate`). An image segmented at a working
+resolution is labelled at its own by the final models (`label_full`). Every part owns labelled
+pixels: label i + 1 is `parts[i]`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .chart import to_world
+from .domain import Domain, free_components, viewing_rays
+from .hypotheses import Models, split_by_model
+from .rangeimage import RangeImage
+from .superquadric import Superquadric
+from .workspace import Workspace
+
+
+@dataclasses.dataclass(frozen=True)
+class Part:
+    """One selected model.
+
+    - `superquadric`: the model, in the data's frame and units.
+    - `region`: the points labelled with it that it explains (eq. 10 distance within tau): flat pixel
+      indices (images) or row indices of the input (clouds).
+    - `error`: sum of squared eq. 10 distances over the region.
+    - `num_points`: pixels (points) labelled with this part, always > 0. Each explained pixel goes to
+      its nearest part; with `ExtraOptions.propagate`, so do unexplained pixels that the surface
+      joins to the part's labelled ones, so this can exceed `num_explained`.
+    - `num_explained`: `region.size`.
+    """
+
+    superquadric: Superquadric
+    region: np.ndarray
+    error: float
+    num_points: int
+    num_explained: int
+
+
+def label_image(ws: Workspace, models: Models) -> np.ndarray:
+    """The label image (the workspace domain's shape, int32; label i + 1 = model i): each explained point goes to
+    its nearest model, speckles to the next nearest, and (`ExtraOptions.propagate`) the unexplained surface joined
+    to labelled points to the nearest neighbouring model. `models` is left holding, largest first, only
+    the models that own labels."""
+    order = np.argsort(-models.regions.sum(1), kind="stable")
+    models.take(order)
+    flat = np.zeros(int(np.prod(ws.dom.shape)), np.int32)
+    if len(models.theta):
+        # Each pixel goes to its nearest model. A model explains a pixel from the camera's side, or
+        # with a face turned away from the camera (the underside of a block standing on another, the
+        # inside of a cup): the camera's side wins, by tau.
+        k, p = np.nonzero(models.regions)
+        dk, _, away = ws.distances(models.theta, k, p)
+        d = np.full(models.regions.shape, np.inf, np.float32)
+        d[k, p] = dk + np.where(away, ws.tau, 0.0)
+        has = np.isfinite(d.min(0))
+        # Distances are compared after a local mean along the adjacency (capped at 2 tau), over a
+        # radius of a tenth of a seed window: systematic differences decide, not single pixels' noise.
+        ok = ws.dom.neighbours >= 0
+        cols = np.where(ok, ws.dom.neighbours, 0)
+        near = np.minimum(d, 2 * ws.tau)
+        for _ in range(max(1, round(np.sqrt(ws.dom.seed_size) / 10))):
+            near = (near + (near[:, cols] * ok).sum(2)) / (1 + ok.sum(1))
+        near[~np.isfinite(d)] = np.inf
+        best = np.argmin(near, 0)
+        # Two almost coincident surfaces can still leave a speckle: a piece of a label smaller than a
+        # seed window goes to the next nearest model that explains it (if none does, it stays).
+        for i in range(len(models.theta)):
+            for piece in free_components(has & (best == i), ws.dom.neighbours, 1, ws.dom.seed_size - 1):
+                alt = near[:, piece]
+                alt[i] = np.inf
+                moved = np.isfinite(alt.min(0))
+                near[i, piece[moved]] = np.inf
+                best[piece[moved]] = np.argmin(alt[:, moved], 0)
+        if ws.opts.extras.propagate:
+            best, has = propagate(ws, models.theta, best, has)
+        # A model whose every pixel went to a nearer one is not a part of the label image: drop it, so
+        # that parts and labels agree (label i + 1 = parts[i], and every part owns labelled pixels).
+        count = np.bincount(best[has], minlength=len(models.theta))
+        owns, relabel = owners(count)
+        flat[ws.dom.index[has]] = relabel[best[has] + 1]
+        models.take(owns)
+    return flat.reshape(ws.dom.shape)
+
+
+def propagate(ws: Workspace, theta, best, has):
+    """Labels for the valid points no model explains but the surface joins to labelled ones.
+
+    Multi-source breadth-first along the adjacency (cut at depth discontinuities): ring by ring, an
+    unlabelled point next to labelled ones takes, of its neighbours' labels, the one whose model is
+    nearest to it. best (P,) model per point, has (P,) bool -> the same, extended."""
+    best, has = best.copy(), has.copy()
+    nb = ws.dom.neighbours
+    ok = nb >= 0
+    cols = np.where(ok, nb, 0)
+    while True:
+        lab = np.where(ok & has[cols], best[cols], -1)  # (P, k) neighbours' labels
+        front = ~has & (lab >= 0).any(1)
+        if not front.any():
+            return best, has
+        p, j = np.nonzero(lab[front] >= 0)
+        p = np.flatnonzero(front)[p]
+        m = lab[p, j]
+        key = np.unique(p * len(theta) + m)
+        p, m = np.divmod(key, len(theta))
+        d, _, _ = ws.distances(theta, m, p)
+        order = np.lexsort((d, p))
+        p, m = p[order], m[order]
+        first = np.r_[True, p[1:] != p[:-1]]
+        best[p[first]], has[p[first]] = m[first], True
+
+
+def owners(count: np.ndarray):
+    """Models that own labelled pixels (count (M,) of each model's pixels): their indices, and the map
+    (M + 1,) from old label (0 = none, i + 1 = model i) to new label, 1..K in the same order."""
+    owns = np.flatnonzero(count > 0)
+    relabel = np.zeros(count.size + 1, np.int32)
+    relabel[owns + 1] = np.arange(1, owns.size + 1)
+    return owns, relabel
+
+
+def label_full(image: RangeImage, step: int, ws: Workspace, models: Models, coarse: np.ndarray):
+    """Label every pixel of the full-size `image` with the final models fitted on its `step`-subsampled
+    copy (whose labels are `coarse` (h, w)).
+
+    A full-size pixel may take the label of any coarse pixel in the 3 x 3 block around it (its own
+    coarse pixel and the 8 adjacent): it goes to the one whose model is nearest (eq. 10; a face turned
+    away from the camera pays tau, as in `label_image`), if that model explains it (within tau); else, with
+    `propagate`, the label of its own coarse pixel if that one was labelled by `_propagate`; else 0.
+    Returns the (H, W) label image (label i + 1 = model owns[i]), the models that own labels, and the
+    runner of the full-size points.
+    """
+    H, W = image.shape
+    h, w = coarse.shape
+    flat = np.flatnonzero(image.valid)
+    P = image.points.reshape(-1, 3)[flat]
+    dom = Domain(P, np.zeros((P.shape[0], 0), np.int64), flat, (H, W), views=viewing_rays(image, P))
+    full = Workspace.create(dom, ws.opts, ws.noise, ws.dtype, centre=ws.centre)  # the working image's noise
+    r, c = np.divmod(flat, W)
+    r, c = np.clip(np.rint(r / step).astype(np.int64), 0, h - 1), np.clip(np.rint(c / step).astype(np.int64), 0, w - 1)
+    padded = np.pad(coarse, 1)
+    cand = np.stack([padded[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], 1)  # (Pf, 9)
+    cand = np.unique(np.arange(P.shape[0], dtype=np.int64)[:, None] * (len(models.theta) + 1) + cand)
+    point, label = np.divmod(cand, len(models.theta) + 1)
+    point, model = point[label > 0], label[label > 0] - 1
+    d, _, away = full.distances(models.theta, model, point)
+    inl = d < ws.tau
+    score = np.where(inl, d + np.where(away, ws.tau, 0.0), np.inf)
+    best = np.full(P.shape[0], np.inf)
+    np.minimum.at(best, point, score)
+    win = inl & (score == best[point])
+    owner = np.zeros(P.shape[0], np.int32)
+    owner[point[win]] = model[win] + 1  # ties: the later model (any one of them)
+    if ws.opts.extras.propagate:
+        # a pixel no model explains takes its coarse pixel's label where that one was propagated
+        # (`propagate`: labelled although no model explains it)
+        explained = np.zeros(h * w, bool)
+        explained[ws.dom.index[models.regions.any(0)]] = True
+        own = coarse[r, c]
+        take = (owner == 0) & (own > 0) & ~explained[r * w + c]
+        owner[take] = own[take]
+    count = np.bincount(owner, minlength=len(models.theta) + 1)[1:]
+    owns, relabel = owners(count)
+    labels = np.zeros(H * W, np.int32)
+    labels[flat] = relabel[owner]
+    return labels.reshape(H, W), owns, full
+
+
+def parts(ws: Workspace, theta: np.ndarray, labels: np.ndarray) -> list:
+    """`Part`s of the models theta (M, 11) that own labels (flat labels over the workspace's points, 0 = none,
+    i + 1 = model i; every model owns some): each part's region is its labelled points that its model
+    explains (eq. 10 distance within tau)."""
+    point = np.flatnonzero(labels > 0)
+    point = point[np.argsort(labels[point], kind="stable")]  # grouped by model, in point order
+    model = labels[point] - 1
+    d, _, _ = ws.distances(theta, model, point)
+    inl = d < ws.tau
+    M = len(theta)
+    count = np.bincount(model, minlength=M)
+    error = np.bincount(model[inl], d[inl].astype(np.float64) ** 2, M)
+    regions = split_by_model(ws.dom.index[point[inl]], model[inl], M)
+    return [
+        Part(sq, regions[i], float(error[i]), int(count[i]), int(regions[i].size))
+        for i, sq in enumerate(to_world(theta, ws.centre).unbatch() if M else [])
+    ]

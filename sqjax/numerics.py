@@ -1,0 +1,26 @@
+"""The per-dtype thresholds of every safe branch, in one table (after jaxlie's `get_epsilon`).
+
+Each is used where an operand is made safe *before* a singular operation (a `log` of 0, a division by
+0, an `exp` that would overflow), so that values and gradients stay finite for every finite input.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPSILON = {
+    # name: (float32, float64)
+    "rotation": (1e-5, 1e-10),  # squared angle below which exp / log of rotations take their series
+    "ratio": (1e-10, 1e-20),  # |x / a| floored at this before its logarithm (eq. 5)
+    "log_f_cap": (20.0, 60.0),  # log F capped here: far beyond any data, yet (F - 1)^2 cannot overflow
+    "log_f_floor": (-20.0, -40.0),  # log F floored here in distances (within ~1e-9 a of the centre)
+    "grad_floor": (1e-18, 1e-150),  # |grad log F| floored here (beyond the cap of F, far outside)
+    "divisor": (1e-6, 1e-12),  # |denominator| of the tapering map floored here
+    "bend": (1e-12, 1e-30),  # denominator of the inverse bending's in-plane shift floored here
+}
+
+
+def eps(name: str, dtype) -> float:
+    """The threshold `name` of the table above for `dtype` (float32, else float64)."""
+    f32, f64 = _EPSILON[name]
+    return f32 if np.dtype(dtype) == np.float32 else f64

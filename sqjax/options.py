@@ -1,0 +1,352 @@
+"""The settings of `segment`, in the parts of the method they belong to, each checked when it is made.
+
+`SegmentOptions` is composed of small frozen dataclasses: the sensor model (`SensorOptions`), the seeds
+(`SeedOptions`), the growth of hypotheses (`GrowthOptions`), model selection (`SelectionOptions`), the
+fitter's own options (`fitting.FitOptions`, as the refits use them) and what sqjax adds to the paper
+(`ExtraOptions`). A bad value raises a `ValueError` that names the class and the field. Every field
+also has a flat name (its own; `fit_steps` for `fit.max_steps`), so that `segment(image, window=6)`,
+`SegmentOptions.create(window=6)` and the command line's `-o window=6` reach it. Units are those of
+the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NoReturn
+
+import numpy as np
+
+from .chart import NUM_PARAMS
+from .fitting import FitOptions
+from .selection import SELECTORS, SelectionWeights
+
+
+def _checker(obj):
+    """Range checks of `obj`'s fields whose errors name the class and the field."""
+    cls = type(obj).__name__
+
+    def bad(name, want) -> NoReturn:
+        raise ValueError(f"{cls}.{name} must be {want}, got {getattr(obj, name)!r}")
+
+    def number(name, lo=None, hi=None, *, integer=False, optional=False, lo_open=False):
+        v = getattr(obj, name)
+        if v is None and optional:
+            return
+        want = ("an integer" if integer else "a finite number") + (" or None" if optional else "")
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer) if integer else (int, float, np.number)):
+            bad(name, want)
+        if not np.isfinite(v):
+            bad(name, want)
+        if lo is not None and (v <= lo if lo_open else v < lo):
+            bad(name, f"{'>' if lo_open else '>='} {lo}")
+        if hi is not None and v > hi:
+            bad(name, f"<= {hi}")
+
+    def flag(*names):
+        for name in names:
+            if not isinstance(getattr(obj, name), (bool, np.bool_)):
+                bad(name, "True or False")
+
+    return bad, number, flag
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorOptions:
+    """The sensor model: what every admission and selection distance is measured in.
+
+    - `noise`: sensor noise std; None = estimated from the data (`domain.estimate_noise`).
+    - `threshold`: admission distance tau (eq. 10); None = `threshold_factor * noise`.
+    - `adaptive_noise`: when the noise is estimated, raise it to the typical residual of the seed fits
+      (real surfaces are not exact superquadrics).
+    - `noise_exponent`: range images: the depth noise is sigma(z) = noise (z / z_median)^k and every
+      distance is compared in units of the local sigma (2 for structured light, Khoshelham & Elberink
+      2012); None = k estimated with the noise, from how the seed windows' plane residuals grow with
+      their depth (`domain.noise_exponent`); 0 (default) = one noise for the whole image. Measured
+      over the benchmark (benchmarks/RESULTS.md): the estimate is confounded by surface curvature
+      (0.6-1.0 on mOSD, up to 1.7 on constant-noise synthetic scenes), and k = 2 did not raise the
+      mOSD score, so the default stays one noise per image.
+    - `jump_factor`: two adjacent pixels are apart (a depth discontinuity cuts the adjacency) when
+      their 3-D step exceeds `jump_factor` times the typical step plus 6 noise.
+    """
+
+    noise: float | None = None
+    threshold: float | None = None
+    threshold_factor: float = 3.0
+    adaptive_noise: bool = True
+    noise_exponent: float | None = 0.0
+    jump_factor: float = 4.0
+
+    def __post_init__(self):
+        _, number, flag = _checker(self)
+        for name in ("noise", "threshold"):
+            number(name, 0, optional=True, lo_open=True)
+        number("threshold_factor", 0, lo_open=True)
+        number("noise_exponent", 0, 4, optional=True)
+        number("jump_factor", 0, lo_open=True)
+        flag("adaptive_noise")
+
+
+@dataclasses.dataclass(frozen=True)
+class SeedOptions:
+    """Seeds (the paper's section 3, step 1).
+
+    - `window`, `stride`: seed windows in pixels (None = from the image size); clouds: `window` points.
+    - `min_seed_points`: fewest valid points in a seed window (2x the 11 parameters).
+    - `seed_inlier_fraction`: a seed is kept when this share of its window lies within tau of its fit
+      (statistically consistent with the noise).
+    - `subdivide`: seeds at several scales (range images): a seed window that fails (a depth
+      discontinuity inside) is split into its four quadrants, recursively, down to the smallest window
+      that can hold `min_seed_points` (5 x 5 for 22), so that parts smaller than a window and the
+      surfaces between the depth edges of clutter get seeds. Measured over every suite
+      (benchmarks/RESULTS.md, 2026-12-01): mOSD 58.6% -> 68.4% correct (objects 52.7% -> 63.3%,
+      table 81% -> 88%), multi-part objects 83.8% -> 92.6%, meshes 24.7% -> 20.8% at T = 0.8 but
+      32.5% -> 44.2% at T = 0.5, synthetic 100% both; noise regions rise (mOSD 22.7% -> 33.2%).
+      Quadrants only in the reseed rounds (where the first pass left data unexplained) gained less and
+      added as much noise. False = one window size, as in the paper.
+    """
+
+    window: int | None = None
+    stride: int | None = None
+    min_seed_points: int = 2 * NUM_PARAMS
+    seed_inlier_fraction: float = 0.9
+    subdivide: bool = True
+
+    def __post_init__(self):
+        bad, number, flag = _checker(self)
+        number("min_seed_points", NUM_PARAMS + 1, integer=True)
+        number("window", 1, integer=True, optional=True)
+        if self.window is not None and self.window * self.window < self.min_seed_points:
+            bad(
+                "window",
+                f"at least {int(np.ceil(np.sqrt(self.min_seed_points)))} (a seed window of "
+                f"window^2 pixels must hold min_seed_points = {self.min_seed_points})",
+            )
+        number("stride", 1, integer=True, optional=True)
+        number("seed_inlier_fraction", 0, 1, lo_open=True)
+        flag("subdivide")
+
+
+@dataclasses.dataclass(frozen=True)
+class GrowthOptions:
+    """The growth of every hypothesis (the paper's section 3, step 2).
+
+    - `enlarge`: growth factor on a1..a3; `rings`: image-adjacent rings searched per growth step
+      (None = 4 per 160 pixels of working-image width and height, the sqrt of the area ratio, so that
+      growth per step scales with the image; clouds 4).
+    - `admit_factor`: candidates within `admit_factor * tau` of the current model are tried; after the
+      refit only points within tau stay, and the step is kept if at least `keep_fraction` of them do.
+      (Lets a model turn a box edge, where the next face starts off the current surface.)
+    - `max_steps`: cap on growth steps per round.
+    - `max_points`: a region is subsampled to at most this many points for its refit.
+    """
+
+    enlarge: float = 1.15
+    admit_factor: float = 3.0
+    rings: int | None = None
+    keep_fraction: float = 0.9
+    max_steps: int = 60
+    max_points: int = 512
+
+    def __post_init__(self):
+        _, number, _ = _checker(self)
+        number("enlarge", 1)
+        number("admit_factor", 1)
+        number("rings", 1, integer=True, optional=True)
+        number("keep_fraction", 0, 1, lo_open=True)
+        number("max_steps", 0, integer=True)
+        number("max_points", 2 * NUM_PARAMS, integer=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class SelectionOptions:
+    """Model selection (the paper's section 3, step 3): maximise m^T Q m.
+
+    - `weights`: K1, K2, K3 (None = `SelectionWeights.for_threshold(tau)`); `selector`: "greedy" (the
+      paper), "local" or "exact".
+    - `select_every`: growth steps between selections (the paper's interleaving).
+    - `free_space`: visibility in selection (range images): a model that fills space in front of an
+      observed point (the camera saw through it) pays `free_space` * K1 per such point (1 = as much as
+      an explained point earns); 0 (default) = the paper's selection. Measured over the benchmark
+      (benchmarks/RESULTS.md) with the distance fit, 1 lost mOSD objects (74.4% -> 61.4% correct,
+      noise regions 20.4% -> 28.9%; complex 50.0% -> 37.5%) for a gain on multi-part objects
+      (85.3% -> 91.2%), and took 55% longer. Visibility decides merges instead (`ExtraOptions.merge`).
+    """
+
+    weights: SelectionWeights | None = None
+    selector: str = "greedy"
+    select_every: int = 3
+    free_space: float = 0.0
+
+    def __post_init__(self):
+        bad, number, _ = _checker(self)
+        if self.selector not in SELECTORS:
+            bad("selector", f"one of {SELECTORS}")
+        if self.weights is not None and not isinstance(self.weights, SelectionWeights):
+            bad("weights", "a SelectionWeights or None")
+        number("select_every", 1, integer=True)
+        number("free_space", 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExtraOptions:
+    """What sqjax adds to the paper; each switch off gives the paper's behaviour.
+
+    - `merge`: try joining selected models whose union one superquadric explains (occlusion splits):
+      `keep_fraction` of each of the two regions within tau, and (range images) the union's model
+      fills no more space the camera saw through (points behind it, pixels with no return) than the
+      two parts do, beyond 1 - `keep_fraction` of its points.
+    - `reseed`: rounds of a second chance after the final selection: seed again where no selected model
+      explains the data, grow those seeds and select among old and new (parts whose hypotheses lost
+      early to a neighbour's). 0 = the paper's single pass.
+    - `min_exclusive`: after the final selection, a model explaining less than this share of its
+      region alone (the rest is also explained by others) is dropped as redundant.
+    - `propagate`: the label image also covers the valid pixels that no final model explains within
+      tau but that the surface joins to labelled ones (adjacency cut at depth discontinuities): ring
+      by ring from the labelled pixels, each takes the neighbouring label whose model is nearest. The
+      models describe a part's volume; the label image partitions the surface, including what a
+      superquadric does not follow (the rounded rim of a box, the curved side of a bowl, mixed pixels
+      at edges). Measured over every suite (benchmarks/RESULTS.md, 2026-12-02): mOSD 76.5% -> 82.1%
+      correct (objects 70.4% -> 77.4%, noise regions 21.5% -> 15.3%, table 100% both), meshes 40.3%
+      -> 42.9%, multi-part objects (85.3%) and synthetic scenes (97.7%) unchanged. False = label only
+      the pixels a model explains (the paper).
+    - `part_volumes`: each final model is refitted to its part's points with the fitter's size bound,
+      from several starts, and the part keeps the candidate that best agrees with the observations
+      (the part's points it explains, less the observed points and empty pixels whose viewing rays
+      it blocks; among equals the smallest volume), unless the growth model agrees better by more
+      than 1 - keep_fraction of the part's points (`postprocess.part_volumes`). Growth extrapolates,
+      so without it a part is often a sheet metres wide or a leg whose far end lies outside the view.
+      Labels are unchanged. Measured over every suite (benchmarks/RESULTS.md, 2026-12-02): median
+      volume IoU of matched multi-part parts 0.47 -> 0.86 (tables 0.11 -> 0.59, chairs 0.33 -> 0.62,
+      arms 0.40 -> 0.97); Hoover scores of every suite unchanged. False = the growth models.
+    - `subsample`: range images are segmented at every `subsample`-th row and column, then every pixel
+      of the input is labelled by the final models (the paper subsampled its dense images). None =
+      the step that brings the image nearest to `segmentation.WORKING_PIXELS` (160 x 120, the
+      resolution every default here was measured at: 640 x 480 -> 4); 1 = the slow exact path.
+    """
+
+    merge: bool = True
+    reseed: int = 2
+    min_exclusive: float = 0.2
+    propagate: bool = True
+    part_volumes: bool = True
+    subsample: int | None = None
+
+    def __post_init__(self):
+        _, number, flag = _checker(self)
+        number("reseed", 0, integer=True)
+        number("min_exclusive", 0, 1)
+        number("subsample", 1, integer=True, optional=True)
+        flag("merge", "propagate", "part_volumes")
+
+
+SEGMENTATION_FIT = FitOptions(max_steps=10)
+"""The fitter's options in segmentation: 10 LM steps per refit (a growth step moves a model little);
+each call sets `multistart` (seeds, merges) and `size_bound` (the part-volume refits) itself."""
+
+_GROUPS = {
+    "sensor": SensorOptions,
+    "seeds": SeedOptions,
+    "growth": GrowthOptions,
+    "selection": SelectionOptions,
+    "extras": ExtraOptions,
+}
+_ALIASES = {"fit_steps": ("fit", "max_steps")}
+
+
+def _flat_names() -> dict[str, tuple[str, str]]:
+    """{flat name: (group, field)} of every option."""
+    out = {f.name: (g, f.name) for g, cls in _GROUPS.items() for f in dataclasses.fields(cls)}
+    return {**out, **_ALIASES}
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentOptions:
+    """Settings of `segment`: one part per step of the method (see each part's docstring).
+
+    Build it from parts (`SegmentOptions(seeds=SeedOptions(window=6))`) or from flat names
+    (`SegmentOptions.create(window=6, reseed=0)`; `fit_steps` is `fit.max_steps`). `fit` is the
+    fitter's `FitOptions` as the refits use it (undeformed models: `deform` must be False).
+    """
+
+    sensor: SensorOptions = dataclasses.field(default_factory=SensorOptions)
+    seeds: SeedOptions = dataclasses.field(default_factory=SeedOptions)
+    growth: GrowthOptions = dataclasses.field(default_factory=GrowthOptions)
+    selection: SelectionOptions = dataclasses.field(default_factory=SelectionOptions)
+    fit: FitOptions = SEGMENTATION_FIT
+    extras: ExtraOptions = dataclasses.field(default_factory=ExtraOptions)
+
+    def __post_init__(self):
+        bad, _, _ = _checker(self)
+        for name, cls in {**_GROUPS, "fit": FitOptions}.items():
+            if not isinstance(getattr(self, name), cls):
+                bad(name, f"a {cls.__name__}")
+        if self.fit.deform:
+            bad("fit", "undeformed (deform=False): segmentation's distance kernels are of undeformed models")
+        if self.growth.max_points < self.seeds.min_seed_points:
+            raise ValueError(
+                f"GrowthOptions.max_points must be >= SeedOptions.min_seed_points = {self.seeds.min_seed_points}, "
+                f"got {self.growth.max_points}"
+            )
+
+    @classmethod
+    def names(cls) -> dict[str, tuple[str, str]]:
+        """{flat name: (part, field)} of every option."""
+        return _flat_names()
+
+    @classmethod
+    def create(cls, **flat: Any) -> SegmentOptions:
+        """Options from flat names (`window=6`, `fit_steps=8`); a `TypeError` names an unknown one."""
+        return cls().replace(**flat)
+
+    def replace(self, **flat: Any) -> SegmentOptions:
+        """A copy with the options of the given flat names changed."""
+        names = _flat_names()
+        unknown = sorted(set(flat) - set(names))
+        if unknown:
+            raise TypeError(f"SegmentOptions: unknown option(s) {', '.join(unknown)}; known: {', '.join(names)}")
+        groups: dict[str, dict] = {}
+        for key, value in flat.items():
+            group, field = names[key]
+            groups.setdefault(group, {})[field] = value
+        parts = {}
+        for group, kw in groups.items():
+            try:
+                parts[group] = dataclasses.replace(getattr(self, group), **kw)
+            except ValueError as e:  # name the option as it was given (fit_steps is FitOptions.max_steps)
+                given = [k for k, (g, _) in names.items() if g == group and k in flat]
+                raise ValueError(f"{e} (option {', '.join(given)})") from None
+        return dataclasses.replace(self, **parts)
+
+    @classmethod
+    def parse(cls, key: str, text: str) -> tuple[str, Any]:
+        """A command-line `KEY=VALUE` -> (flat name, value of the field's type). KEY is a flat name or
+        `part.field` (`-` for `_`); VALUE `none` / `auto` for an optional field, `true` / `false`. A
+        `ValueError` names the key. `weights` takes no text form."""
+        names = _flat_names()
+        key = key.strip().replace("-", "_")
+        if "." in key:
+            key = next((n for n, path in names.items() if ".".join(path) == key), key)
+        if key not in names or key == "weights":
+            known = ", ".join(n for n in names if n != "weights")
+            raise ValueError(f"unknown segment option {key!r} (known: {known})")
+        group, field = names[key]
+        spec = next(f for f in dataclasses.fields(FitOptions if group == "fit" else _GROUPS[group]) if f.name == field)
+        default, annotation, text = spec.default, str(spec.type), text.strip()
+        try:
+            if text.lower() in ("none", "auto", "") and (default is None or "None" in annotation):
+                return key, None
+            if isinstance(default, bool):
+                if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError(text)
+                return key, text.lower() in ("true", "1", "yes")
+            if isinstance(default, int) or "int" in annotation:
+                return key, int(text)
+            if isinstance(default, float) or "float" in annotation:
+                return key, float(text)
+            return key, text
+        except ValueError:
+            raise ValueError(f"bad value for segment option {key}: {text!r}") from None
+
+    def flat(self) -> dict[str, Any]:
+        """{flat name: value} of every option."""
+        return {key: getattr(getattr(self, g), f) for key, (g, f) in _flat_names().items()}

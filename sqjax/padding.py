@@ -1,0 +1,70 @@
+"""How arrays are padded before they reach a jitted kernel: every policy of the package, in one place.
+
+A jitted kernel compiles once per input shape (5-20 s each on CPU), so every batch entry point pads its
+inputs to a few fixed sizes, and the padding rows repeat a real row (or zeros) so that no padded problem
+can produce a NaN. Each policy below says which kernel it serves and why its sizes are what they are.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+CHUNK_POINTS = 4096
+"""On CPU the fitter fits `max(1, CHUNK_POINTS // N)` problems of N points at a time (`solver.map_problems`):
+a chunk's points and every intermediate of its LM steps then stay in cache."""
+
+ACCELERATOR_BATCHES = (1, 4, 16, 32, 64)
+"""Problems per call of the fit kernel on an accelerator, for callers whose count moves (`call_size`)."""
+
+PAIRS = 1 << 15
+"""Most (model, point) pairs per call of a pair kernel (eq. 10 distances, free-space tests)."""
+
+POINT_ROWS = 4096
+"""A scene's points are padded to a multiple of this on the device (the pair kernels index into them)."""
+
+
+def bucket(n: int, minimum: int = 32) -> int:
+    """The next power of two >= n, at least `minimum`: `fit`'s K and N, small host-side batches."""
+    return max(minimum, 1 << max(int(n) - 1, 0).bit_length())
+
+
+def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:
+    """a (m, ...) followed by copies of `fill` up to n rows (a itself when m >= n)."""
+    return np.concatenate([a, np.repeat(np.asarray(fill)[None], n - a.shape[0], 0)]) if n > a.shape[0] else a
+
+
+def call_size(K: int, N: int) -> int:
+    """Problems per call of the fit kernel for K problems of N (padded) points, for callers whose K moves
+    from call to call (segmentation's refits), so that each (N, options) compiles few kernels.
+
+    On CPU, which fits a call's problems `CHUNK_POINTS // N` at a time anyway, that chunk whatever K
+    (several calls for more): one kernel. A single problem then pays for a chunk, which measured less
+    than the kernel it saves (mOSD at 160 x 120, 7 scenes, 2026-12-02: steady-state time within 2%,
+    compile 79 -> 55 s). On an accelerator, which fits them side by side, the next of
+    `ACCELERATOR_BATCHES` (calls of 64 beyond): five kernels."""
+    if jax.default_backend() == "cpu":
+        return max(1, CHUNK_POINTS // N)
+    return next((b for b in ACCELERATOR_BATCHES if b >= K), ACCELERATOR_BATCHES[-1])
+
+
+def refit_points(largest: int, max_points: int) -> int:
+    """Points per problem of a segmentation refit whose largest region has `largest` points (regions are
+    subsampled to `max_points`): 128 when every region fits (seed windows at 160 x 120 hold about 100),
+    else `max_points` rounded up to a power of two: two kernels per option set."""
+    cap = bucket(max_points, 32)
+    return min(128, cap) if min(largest, max_points) <= 128 else cap
+
+
+def pair_chunk(E: int) -> int:
+    """Pairs per call of a pair kernel for E pairs: 1024 times a power of 4, at most `PAIRS` (four
+    compiled sizes; a padded call's pairs are cheap next to a compile, about 1 s each on CPU)."""
+    n = 1024
+    while n < min(E, PAIRS):
+        n *= 4
+    return min(n, PAIRS)
+
+
+def point_rows(P: int) -> int:
+    """Device rows for a scene of P points: the next multiple of `POINT_ROWS`."""
+    return -(-P // POINT_ROWS) * POINT_ROWS

@@ -1,0 +1,142 @@
+"""What sqjax adds after the paper's final selection: parts split by occlusion rejoined (`merge`),
+redundant models dropped (`prune_redundant`), and each part given its own volume (`part_volumes`).
+
+Host orchestration in numpy around the workspace's kernels; each step is a switch of `ExtraOptions`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .chart import volumes
+from .hypotheses import Models, pairs
+from .initial import one_view_starts
+from .seeds import fit_best
+from .visibility import free_space_violations, void_violations
+from .workspace import Workspace
+
+
+def merge(ws: Workspace, models: Models) -> Models:
+    """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits)."""
+    keep_fraction = ws.opts.growth.keep_fraction
+    pairs = merge_candidates(ws.host_points, models.regions)
+    if not pairs:
+        return models
+    unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
+    theta, d, score = fit_best(ws, unions, multistart=True)
+    keep, regions, dist = [], [], []
+    for k, ids in enumerate(unions):
+        # One model for the union must explain each of the two (keep_fraction of its points within
+        # tau), not only the union: over a block standing on a cylinder it explains 90% of both
+        # together, at the cost of the smaller one.
+        inl = d[k] < ws.tau
+        i, j = pairs[k]
+        each = [inl[models.regions[m][ids]].mean() for m in (i, j)]
+        if np.isfinite(score[k]) and min(each) >= keep_fraction:
+            region = np.zeros(ws.P, bool)
+            region[ids[inl]] = True
+            keep.append(k)
+            regions.append(region)
+            dist.append(d[k][inl])
+    if keep:
+        # Visibility: the union's model must not fill space the camera saw through (points behind it,
+        # or no return at all) much more than its two parts do; a box under a table, whose side face
+        # holds the legs, explains both pieces but fills the free space between the legs.
+        seen = lambda th: free_space_violations(ws, th) + void_violations(ws, th)
+        extra = seen(theta[keep]) - seen(models.theta)[np.array([pairs[k] for k in keep])].sum(1)
+        ok = extra <= (1.0 - keep_fraction) * np.array([r.sum() for r in regions])
+        keep, regions, dist = ([x for x, good in zip(a, ok) if good] for a in (keep, regions, dist))
+    if not keep:
+        return models
+    out = models.concat(Models(theta[keep], np.stack(regions), dist))
+    out.active[:] = False
+    return out
+
+
+MERGE_NEIGHBOURS = 4
+
+
+def merge_candidates(points: np.ndarray, regions: np.ndarray) -> list:
+    """Pairs (i, j), i < j, of models worth a union fit: every pair when there are few models, else each
+    model with its `MERGE_NEIGHBOURS` nearest (gap between the regions' bounding spheres), so that the
+    union fits grow linearly with the number of models, not quadratically (a scene of hundreds of
+    selected pieces must not cost tens of thousands of fits). Points (P, 3), regions (M, P) bool."""
+    M = len(regions)
+    if M <= 2 * MERGE_NEIGHBOURS + 1:
+        return [(i, j) for i in range(M) for j in range(i + 1, M)]
+    centre = np.stack([points[r].mean(0) for r in regions])
+    radius = np.array([np.linalg.norm(points[r] - c, axis=1).max() for r, c in zip(regions, centre)])
+    gap = np.linalg.norm(centre[:, None] - centre[None], axis=-1) - radius[:, None] - radius[None]
+    np.fill_diagonal(gap, np.inf)
+    near = np.argsort(gap, 1, kind="stable")[:, :MERGE_NEIGHBOURS]
+    return sorted({(min(i, j), max(i, j)) for i in range(M) for j in near[i]})
+
+
+def prune_redundant(models: Models, min_exclusive: float) -> int:
+    """Drop, one at a time, the selected model that explains the smallest share of points no other
+    selected model explains, while that share is below `min_exclusive`. Returns how many went.
+
+    Eq. 2 prices a model at K3 N_i points, so a model that duplicates another except for a few dozen
+    points can still be selected; such a model is not a part of its own.
+    """
+    dropped = 0
+    while len(models.theta) > 1:
+        B = models.regions
+        cover = B.sum(0)
+        excl = (B & (cover == 1)[None]).sum(1) / np.maximum(B.sum(1), 1)
+        i = int(np.argmin(excl))
+        if excl[i] >= min_exclusive:
+            break
+        models.take(np.arange(len(models.theta)) != i)
+        dropped += 1
+    return dropped
+
+
+def part_volumes(ws: Workspace, models: Models, labels: np.ndarray) -> np.ndarray:
+    """The final models' volumes made the parts': theta (M, 11), one row per model (label i + 1).
+
+    A growth fit's unseen extent is free (it extrapolates to admit points), so a final model may be a
+    sheet metres wide explaining one face, or a leg 40 m long whose far end lies outside the view.
+    Each model is refitted to its part's points (labelled with it and explained by it) with the fitter's
+    size bound (`FitOptions.size_bound`), from the growth model, from each of `initial.one_view_starts` and from the
+    fitter's multistart. A candidate's agreement with what the camera saw is the number of the part's
+    points it explains (within tau) less the observations it contradicts (points behind it and pixels
+    with no return whose viewing rays pass through it: `visibility.free_space_violations`, `visibility.void_violations`,
+    sampled on the model's bounding-box chord so that a swollen growth model is seen; none for
+    clouds). The part takes the bounded candidate that agrees best (among equals the smallest
+    volume, the solid that claims least of the space nobody saw) unless the growth model agrees better
+    by more than 1 - keep_fraction of the part's points. The label image is not changed.
+    """
+    theta = models.theta.copy()
+    own = labels.ravel()[ws.dom.index]
+    regions = [np.flatnonzero(models.regions[i] & (own == i + 1)) for i in range(len(theta))]
+    use = [i for i, r in enumerate(regions) if r.size >= ws.opts.seeds.min_seed_points]
+    if not use:
+        return theta
+    regions = [regions[i] for i in use]
+    growth = theta[use]
+    starts = [growth, *one_view_starts(ws.host_points, regions, ws.camera), None]
+    cands = [growth] + [ws.fit(regions, th0, size_bound=True) for th0 in starts]
+    model, point = pairs(regions)
+    score = []
+    for i, th in enumerate(cands):  # one candidate at a time: each call's pairs fill its chunks
+        ok = np.isfinite(th).all(1, keepdims=True)
+        cands[i] = th = np.where(ok, th, growth)
+        d, _, _ = ws.distances(th, model, point)
+        agree = (
+            np.bincount(model, d < ws.tau, len(use))
+            - free_space_violations(ws, th, box=True)
+            - void_violations(ws, th, box=True)
+        )
+        score.append(np.where(ok.ravel(), agree, -np.inf))
+    score, stack = np.array(score), np.concatenate(cands)
+    C, K = score.shape
+    volume = volumes(stack).reshape(C, K)
+    # a bounded candidate whenever one agrees within 1 - keep_fraction of the part's points (the
+    # tolerance by which growth accepts a step) as well as the growth model: its extent is the data's
+    bounded, bvol = score[1:], volume[1:]
+    best = 1 + np.argmin(np.where(bounded == bounded.max(0), bvol, np.inf), 0)
+    sizes = np.array([r.size for r in regions])
+    pick = np.where(bounded.max(0) >= score[0] - (1.0 - ws.opts.growth.keep_fraction) * sizes, best, 0)
+    theta[use] = stack.reshape(C, K, -1)[pick, np.arange(K)]
+    return theta

@@ -1,0 +1,247 @@
+"""Recover-and-select: direct part-level segmentation with superquadrics (Leonardis, Jaklič, Solina).
+
+`segment` interleaves model recovery (`seeds`, `growth`: every hypothesis grows and is refitted, all
+in one batch per step) with model selection (`selection`: maximise m^T Q m) until no selected model
+grows; then rejoins parts split by occlusion and seeds again where the data is left unexplained
+(`postprocess`), and returns the selected models with their regions and a label image (`labelling`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .chart import NUM_PARAMS, to_world
+from .domain import Domain, cloud_domain, estimate_noise, free_components, image_domain, knn
+from .growth import grow
+from .hypotheses import Models
+from .labelling import Part, label_full, label_image, parts
+from .options import SegmentOptions
+from .postprocess import merge, part_volumes, prune_redundant
+from .rangeimage import RangeImage
+from .seeds import cloud_seeds, image_seeds, seed
+from .selection import SelectionWeights, build_q, select
+from .timing import Clock
+from .visibility import free_space_violations
+from .workspace import Noise, Workspace
+
+WORKING_PIXELS = 160 * 120
+"""Range images are segmented at about this many pixels (`ExtraOptions.subsample`)."""
+
+__all__ = ["Part", "Segmentation", "SegmentOptions", "segment", "working_step", "workspace"]
+
+
+@dataclasses.dataclass
+class Segmentation:
+    """What `segment` returns.
+
+    - `parts`: the selected models (`labelling.Part`), largest first.
+    - `labels`: (H, W) int32 for range images ((P,) for clouds): 0 = none, i + 1 = `parts[i]`.
+    - `history`: after each selection, the list of selected `Superquadric`s (the paper's panels d–f).
+    - `noise`, `threshold`: the values used; `timings`: seconds (`total`, `compile`, `run`), and counts.
+    """
+
+    parts: list
+    labels: np.ndarray
+    history: list
+    noise: float
+    threshold: float
+    timings: dict
+    stats: dict
+
+    def to_dict(self) -> dict:
+        return {
+            "parts": [
+                {
+                    **p.superquadric.to_dict(),
+                    "num_points": int(p.num_points),
+                    "num_explained": int(p.num_explained),
+                    "error": float(p.error),
+                }
+                for p in self.parts
+            ],
+            "noise": float(self.noise),
+            "threshold": float(self.threshold),
+            "timings": self.timings,
+            "stats": self.stats,
+        }
+
+
+def working_step(shape) -> int:
+    """The subsampling step that brings an (H, W) image nearest to `WORKING_PIXELS` (>= 1)."""
+    return max(1, int(round(np.sqrt(shape[0] * shape[1] / WORKING_PIXELS))))
+
+
+def _prepare(data, opts: SegmentOptions, k: int) -> tuple[Domain, Noise]:
+    """The domain of `data` with its seed windows, and the noise (from the options or the data)."""
+    sensor, seeds = opts.sensor, opts.seeds
+    if isinstance(data, RangeImage):
+        valid = data.valid
+        if not valid.any():
+            raise ValueError("segment: the range image has no valid pixel (all depths are NaN, 0 or inf)")
+        if valid.sum() < seeds.min_seed_points:
+            raise ValueError(
+                f"segment: the range image has {int(valid.sum())} valid pixels; at least "
+                f"{seeds.min_seed_points} are needed for one seed"
+            )
+        sigma = sensor.noise if sensor.noise is not None else estimate_noise(data)
+        H, W = data.shape
+        window = seeds.window or int(np.clip(round(min(H, W) / 12), 4, 32))
+        window = min(window, H, W)
+        stride = seeds.stride or max(window // 2, 1)
+        dom = image_domain(data, sensor.jump_factor, sigma)
+        windows, seed_size = image_seeds(dom, window, stride, seeds.min_seed_points, seeds.subdivide)
+        dom = dataclasses.replace(dom, seeds=windows, seed_size=seed_size)
+        noise = Noise(sigma, sensor.threshold if sensor.threshold is not None else sensor.threshold_factor * sigma)
+        if sensor.noise_exponent:  # else the seeds estimate it (`seeds.seed`), or it is 0
+            noise = dataclasses.replace(
+                noise, exponent=sensor.noise_exponent, z_ref=float(np.median(np.abs(dom.points[:, 2])))
+            )
+        return dom, noise
+    pts = np.asarray(data, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"segment: expected a RangeImage or an (P, 3) array, got shape {pts.shape}")
+    rows = np.flatnonzero(np.isfinite(pts).all(1))
+    n_rows, pts = pts.shape[0], pts[rows]
+    if pts.shape[0] < seeds.min_seed_points:
+        raise ValueError(f"segment: {pts.shape[0]} valid points; at least {seeds.min_seed_points} are needed")
+    nb = knn(pts, k)
+    spacing = np.median(np.linalg.norm(pts[nb[:, 0]] - pts, axis=1))
+    sigma = sensor.noise if sensor.noise is not None else float(max(spacing / 4, 1e-12))
+    window = seeds.window or max(seeds.min_seed_points, 48)
+    dom = cloud_domain(pts, rows, n_rows, nb)
+    dom = dataclasses.replace(dom, seeds=cloud_seeds(dom, window, seeds.min_seed_points), seed_size=window)
+    return dom, Noise(sigma, sensor.threshold if sensor.threshold is not None else sensor.threshold_factor * sigma)
+
+
+def workspace(data, options: SegmentOptions | None = None, *, k: int = 8) -> Workspace:
+    """The workspace `segment` starts from, for the (working-resolution) range image or (P, 3) cloud
+    `data`: its domain with the seed windows, the noise from the options or the data (before the seeds
+    adapt it), the points on the device, and the options with `rings` resolved (4 per 160 pixels of
+    width and height; clouds 4). For notebooks and tests that call the kernels themselves."""
+    opts = options if options is not None else SegmentOptions()
+    if opts.growth.rings is None:
+        size = data.shape[0] * data.shape[1] if isinstance(data, RangeImage) else WORKING_PIXELS
+        opts = opts.replace(rings=max(1, round(4 * np.sqrt(size / WORKING_PIXELS))))
+    dom, noise = _prepare(data, opts, k)
+    return Workspace.create(dom, opts, noise)
+
+
+def _select(ws: Workspace, models: Models, weights: SelectionWeights):
+    """Maximise m^T Q m over the hypotheses (eqs. 1-4), errors capped at tau; the presence vector."""
+    opts = ws.opts.selection
+    d2 = [np.minimum(d, ws.tau) ** 2 for d in models.dist]
+    Q = build_q(models.regions, d2, np.full(len(models.theta), NUM_PARAMS), weights)
+    if opts.free_space > 0:
+        # visibility: every point the camera saw through the model costs what an explained one earns
+        Q[np.diag_indices_from(Q)] -= opts.free_space * weights.k1 * free_space_violations(ws, models.theta)
+    return select(Q, opts.selector)
+
+
+def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress=None, **kw) -> Segmentation:
+    """Part-level segmentation of a range image (or an (P, 3) point cloud) by recover-and-select.
+
+    **Arguments:**
+
+    - `data`: a `RangeImage` (pixels adjacent on the image grid) or an `(P, 3)` array of points
+      (adjacency = `k` nearest neighbours); NaN rows / missing pixels are ignored.
+    - `options`: a `SegmentOptions`; keyword arguments (flat names: `noise=`, `window=`, ...) build one.
+    - `progress`: optional callable `progress(step, n_active, n_models, *, stage, round)` called after
+      each growth step (`stage="grow"`), before each round's merge and final selection ("merge") and
+      before the labels ("finish"); `round` counts from 0 (the first pass; then each reseed round).
+
+    **Returns:** a `Segmentation` (parts, label image, history, timings).
+    """
+    if options is not None and kw:
+        raise TypeError(f"segment: pass options= or keyword options, not both (got {sorted(kw)})")
+    opts = options if options is not None else SegmentOptions.create(**kw)
+    clock = Clock()
+    full, step = None, 1
+    if isinstance(data, RangeImage):
+        step = opts.extras.subsample or working_step(data.shape)
+        if step > 1:
+            full, data = data, data.subsample(step)
+    ws = workspace(data, opts, k=k)
+    opts, dom = ws.opts, ws.dom
+    models, ws = seed(ws)
+    weights = opts.selection.weights or SelectionWeights.for_threshold(ws.tau)
+    history = []
+    stats = {
+        "seeds": len(dom.seeds),
+        "seed_models": len(models.theta),
+        "selections": 0,
+        "greedy_worse": 0,
+        "growth_steps": 0,
+        "reseeded": 0,
+        "noise_exponent": ws.noise.exponent,
+    }
+
+    def select_(models):
+        m, st = _select(ws, models, weights)
+        stats["selections"] += 1
+        stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
+        models.take(m)
+        history.append(models.theta.copy())
+
+    def report(stage, round_):
+        if progress is not None:
+            progress(stats["growth_steps"], int(models.active.sum()), len(models.theta), stage=stage, round=round_)
+
+    def recover_and_select(models, budget, round_):
+        """Growth of the active models interleaved with selection, until all stop or `budget` steps."""
+        step = 0
+        while models.active.any() and step < budget:
+            for _ in range(opts.selection.select_every):
+                grow(ws, models)
+                step += 1
+                stats["growth_steps"] += 1
+                if progress is not None:
+                    progress(
+                        stats["growth_steps"], int(models.active.sum()), len(models.theta), stage="grow", round=round_
+                    )
+                if not models.active.any() or step >= budget:
+                    break
+            select_(models)
+
+    def final_selection(models):
+        """Rejoin occlusion splits, select, drop the redundant."""
+        if opts.extras.merge and len(models.theta) > 1:
+            models = merge(ws, models)
+        if len(models.theta):
+            select_(models)
+            stats["pruned"] = stats.get("pruned", 0) + prune_redundant(models, opts.extras.min_exclusive)
+        return models
+
+    recover_and_select(models, opts.growth.max_steps, 0)
+    report("merge", 0)
+    models = final_selection(models)
+    for round_ in range(1, opts.extras.reseed + 1):
+        # Another chance for what the final models leave unexplained: seeds lying there grow beside
+        # the (stopped) selected models and compete with them in the selections.
+        free = ~models.regions.any(0)
+        fresh = [ids for ids in dom.seeds if free[ids].mean() >= opts.seeds.seed_inlier_fraction]
+        # and every unexplained connected piece is a seed as a whole: the strips no seed window fits
+        # in (a plate's border around the box on it, windows touching an edge); a piece that no
+        # superquadric explains fails the seed test
+        fresh += free_components(free, dom.neighbours, opts.seeds.min_seed_points)
+        new = seed(ws, fresh)[0] if fresh else None
+        if new is None or not len(new.theta):
+            break
+        stats["reseeded"] += len(new.theta)
+        models.active[:] = False
+        models = models.concat(new)
+        recover_and_select(models, opts.growth.max_steps, round_)
+        report("merge", round_)
+        models = final_selection(models)
+    report("finish", opts.extras.reseed)
+    labels = label_image(ws, models)
+    theta = part_volumes(ws, models, labels) if opts.extras.part_volumes else models.theta
+    if full is not None:
+        labels, owns, fws = label_full(full, step, ws, models, labels)
+        found = parts(fws, theta[owns], labels.ravel()[fws.dom.index])
+    else:
+        found = parts(ws, theta, labels.ravel()[ws.dom.index])
+    stats["subsample"] = step
+    history = [to_world(h, ws.centre).unbatch() if len(h) else [] for h in history]
+    return Segmentation(found, labels, history, ws.noise.sigma, ws.tau, clock.timings(), stats)

@@ -1,0 +1,213 @@
+"""The batched fitter: every start of every problem, side by side, in one jit-compiled call.
+
+One problem (`fit_one`, normalised to centroid 0 and rms radius 1) runs the multistart of `initial`
+(screened on a subsample, the EMS switches of the best, a finish on all points), or LM from a warm
+start, then the robust rounds (`robust`) and the deformation choice; gradients of the fitted
+parameters with respect to the points come from the implicit function theorem at the optimum
+(`optimistix.ImplicitAdjoint` on `_stationarity`), never from differentiating the iterations.
+`fit_padded` (segmentation's refits) and `fit_kernel` (`fitting.fit`) map it over padded batches of
+problems (K, N, 3) with masks (K, N): a vmap on accelerators, a loop over cache-sized chunks on CPU.
+Option modules (`fitting.FitOptions`) are static; every array is traced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from .cache import persistent_kernel
+from .chart import BEND, LOG_SIZE, NUM_DEFORM, TRANSLATION, from_fields, pack, project, to_superquadric, unpack
+from .initial import initial_states, moment_starts, switched
+from .lm import capped, cost_of, levenberg_marquardt
+from .padding import CHUNK_POINTS
+from .robust import reweighted, robust_scores
+from .superquadric import distance
+
+
+def _best(states, costs, convs, scores=None):
+    """The candidate of lowest `scores` (default: the costs); non-finite ones never win."""
+    scores = costs if scores is None else scores
+    i = jnp.argmin(jnp.where(jnp.isfinite(scores) & jnp.isfinite(costs), scores, jnp.inf))
+    return jax.tree.map(lambda v: v[i], states), costs[i], convs[i]
+
+
+def _subsample(points, mask, n: int):
+    """`n` of the valid points, evenly strided through them in their given order: (3, n), (n,).
+
+    All of them (and padding) when there are at most `n`. Used to screen the starting candidates.
+    """
+    order = jnp.argsort(~mask, stable=True)  # valid points first, order kept
+    nv = jnp.sum(mask)
+    i = jnp.arange(n)
+    j = jnp.where(nv <= n, i, (i * nv) // n)
+    idx = order[j]
+    return points[:, idx], mask[idx] & (j < nv)
+
+
+def _multistart(points, mask, opts):
+    """Every start for `max_steps` and the two switched forms of the best for half as many, on a
+    subsample of `screen_points`; then the winner for `max_steps // 2` more on all the points.
+
+    With `robust`, every candidate also gets the IRLS rounds on the subsample and the candidates are
+    compared by their truncated cost (`robust.robust_scores`); the finish on all points is left to `_solve`'s
+    reweighting."""
+    N = points.shape[1]
+    n_sub = N if opts.screen_points is None else min(N, opts.screen_points)
+    sub_pts, sub_mask = _subsample(points, mask, n_sub) if n_sub < N else (points, mask)
+    half = max(opts.max_steps // 2, 1)
+
+    def run(states, n):
+        out = jax.vmap(lambda s: levenberg_marquardt(s, sub_pts, sub_mask, opts, n))(states)
+        if opts.robust:
+            out = jax.vmap(lambda s: reweighted(s, sub_pts, sub_mask, opts)[:3])(out[0])
+        return out
+
+    def pick(out):
+        scores = robust_scores(out[0], sub_pts, sub_mask, opts) if opts.robust else None
+        return _best(*out, scores=scores)
+
+    best = pick(run(initial_states(points, mask, opts.starts, opts.epsilon_starts), opts.max_steps))
+    second = run(switched(best[0]), half)
+    best = pick(jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), best, second))
+    if n_sub == N or opts.robust:
+        return best
+    return levenberg_marquardt(best[0], points, mask, opts, half)
+
+
+def _solve(inputs):
+    points, mask, theta0, opts, _ = inputs  # the adjoint appends a while-loop implementation
+    if theta0 is not None:
+        state, cost, conv = levenberg_marquardt(unpack(theta0, opts.deform), points, mask, opts, opts.max_steps)
+    elif opts.multistart:
+        state, cost, conv = _multistart(points, mask, opts)
+    else:
+        first = jax.tree.map(lambda v: v[0], moment_starts(points, mask))
+        state, cost, conv = levenberg_marquardt(first, points, mask, opts, opts.max_steps)
+    weight = mask.astype(points.dtype)
+    if opts.robust:
+        state, cost, conv, weight = reweighted(state, points, mask, opts)
+    return pack(*state, deform=opts.deform), (cost, conv, weight)
+
+
+def _stationarity(theta, aux, inputs):
+    """Projected-gradient optimality condition; zero at a (bound-constrained) minimum of G.
+
+    With `robust`, of the weighted G with the final weights held fixed (aux)."""
+    points, mask, _, opts, _ = inputs
+    weight = aux[2] if opts.robust else None
+    grad = jax.grad(lambda th: cost_of(unpack(th, opts.deform), points, mask, opts, weight))(theta)
+    _, _, R, t, _ = unpack(theta, opts.deform)
+    step = project(theta - grad, opts.epsilon_range, opts.deform)
+    step = step.at[LOG_SIZE].set(capped(step[LOG_SIZE], R, t, points, mask, opts))
+    return theta - step
+
+
+def _deformation_pays(cost_deformed, cost_plain, n):
+    """Whether the 4 deformation parameters earn their place (`FitOptions.deform`): the description
+    length of the points, n/2 log(cost / n) for Gaussian residuals plus 1/2 log n per parameter (the
+    BIC, a two-part code), is shorter with them: n log(cost_plain / cost_deformed) > 4 log n. On an
+    undeformed shape the 4 extra parameters lower the cost by about 4 noise variances (a chi-square
+    with 4 degrees of freedom), far below 4 log n."""
+    tiny = jnp.finfo(cost_plain.dtype).tiny
+    gain = n * (jnp.log(jnp.maximum(cost_plain, tiny)) - jnp.log(jnp.maximum(cost_deformed, tiny)))
+    return jnp.isfinite(cost_deformed) & (gain > 4.0 * jnp.log(n))
+
+
+def fit_one(points, mask, theta0, opts):
+    """Fit one padded problem; points (N, 3) with mask (N,); theta0 (P,) or None (original units)."""
+    dtype = points.dtype
+    w = mask.astype(dtype)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    centre = jnp.sum(jnp.where(mask[:, None], points, 0.0), 0) / n
+    centred = jnp.where(mask[:, None], points - centre, 0.0)
+    scale = jnp.sqrt(jnp.sum(centred * centred) / n + jnp.finfo(dtype).tiny)
+    scale = jnp.where(scale > 0, scale, 1.0)
+    pn = (centred / scale).T
+    if theta0 is not None:  # original units -> normalised chart
+        theta0 = theta0.at[LOG_SIZE].add(-jnp.log(scale)).at[TRANSLATION].set((theta0[TRANSLATION] - centre) / scale)
+        if opts.deform:
+            theta0 = theta0.at[BEND.start].multiply(scale)
+    adjoint = optx.ImplicitAdjoint(lx.AutoLinearSolver(well_posed=False))  # SVD: a sphere's pose is not unique
+    theta, (cost, conv, weight) = adjoint.apply(_solve, _stationarity, (pn, mask, theta0, opts), frozenset())
+    if opts.deform:  # deformations only where they pay for themselves: nested models
+        plain = dataclasses.replace(opts, deform=False)
+        th0 = None if theta0 is None else theta0[: plain.num_params]
+        theta_u, aux_u = adjoint.apply(_solve, _stationarity, (pn, mask, th0, plain), frozenset())
+        # the deformed model also starts from the undeformed optimum (zero deformation), so that its
+        # gain over it measures what the 4 parameters add, not a better local minimum
+        flat = jnp.concatenate([theta_u, jnp.zeros(NUM_DEFORM, dtype)])
+        nested = adjoint.apply(_solve, _stationarity, (pn, mask, jax.lax.stop_gradient(flat), opts), frozenset())
+        choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
+        theta, (cost, conv, weight) = choose(nested[1][0] < cost, nested, (theta, (cost, conv, weight)))
+        theta, (cost, conv, weight) = choose(
+            _deformation_pays(cost, aux_u[0], n), (theta, (cost, conv, weight)), (flat, aux_u)
+        )
+    theta = theta.at[LOG_SIZE].add(jnp.log(scale)).at[TRANSLATION].set(theta[TRANSLATION] * scale + centre)
+    if opts.deform:
+        theta = theta.at[BEND.start].divide(scale)
+    cost = cost * scale ** (3 if opts.residual == "size_weighted" else 2)  # f ~ sqrt(a1 a2 a3); d ~ length
+    sq = to_superquadric(theta, opts.deform)
+    dist = jnp.where(mask, distance(sq, points), 0.0)
+    return theta, cost, conv, dist, weight
+
+
+def map_problems(points, mask, theta0, opts):
+    """`fit_one` over the leading axis: one vmap on accelerators; on CPU a loop over small chunks.
+
+    A chunk's points and every intermediate of its LM steps then stay in cache, which on CPU is worth
+    more than the width of one huge vmap.
+    """
+    K, N = points.shape[:2]
+    if jax.default_backend() != "cpu":
+        return jax.vmap(fit_one, in_axes=(0, 0, None if theta0 is None else 0, None))(points, mask, theta0, opts)
+    chunk = min(K, max(1, CHUNK_POINTS // N))
+    return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts), (points, mask, theta0), batch_size=chunk)
+
+
+@persistent_kernel
+@eqx.filter_jit
+def fit_padded(points, mask, theta0, opts):
+    """The batch kernel: points (K, N, 3), mask (K, N), theta0 (K, P) or None -> theta, cost, converged, distance.
+
+    One compiled call per (K, N, dtype, options); `fit` pads to power-of-two buckets to keep that set
+    small. `theta` is the global chart [log a, e, rotation vector, t, (Kx, Ky, k, alpha)]. With the
+    compilation cache on, its lowered form is kept on disk too (`cache.persistent_kernel`).
+    """
+    return map_problems(points, mask, theta0, opts)[:4]
+
+
+def fit_problems(points, mask, init, opts):
+    """Everything `fit` needs from the device in one traced function: (sq fields, cost, conv, dist, weight, init_ok)."""
+    theta0, init_ok = (
+        (None, jnp.ones(points.shape[:1], bool)) if init is None else from_fields(init, opts.epsilon_range, opts.deform)
+    )
+    theta, cost, conv, dist, weight = map_problems(points, mask, theta0, opts)
+    sq = to_superquadric(theta, opts.deform)
+    return (sq.size, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend), cost, conv, dist, weight, init_ok
+
+
+fit_kernel = persistent_kernel(eqx.filter_jit(fit_problems))
+"""The kernel `fit` calls: one compile per (padded K, padded N, dtype, options, init or not)."""
+
+
+@eqx.filter_jit
+def fit_sharded(points, mask, init, opts):
+    """`fit_kernel` with the problems split over every local CPU device (one `shard_map` block each)."""
+    mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
+    spec = jax.sharding.PartitionSpec("k")
+    body = lambda p, m, i: fit_problems(p, m, i, opts)
+    return jax.shard_map(
+        body, mesh=mesh, in_specs=(spec, spec, None if init is None else spec), out_specs=spec, check_vma=False
+    )(points, mask, init)
+
+
+def use_devices(K: int) -> bool:
+    """Several local CPU devices (`XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`) dividing K."""
+    devices = jax.local_devices()
+    return len(devices) > 1 and K % len(devices) == 0 and devices[0].platform == "cpu"

@@ -1,0 +1,150 @@
+"""Visibility: a model that fills space the camera saw through is contradicted by the data.
+
+A range image's pixel says that its viewing ray is empty up to the observed point (and, with no return,
+empty as far as the sensor reaches). `free_space_violations` counts the observed points whose viewing
+ray passes through a model in front of them, `void_violations` the pixels with no return whose ray passes
+through it; merges (`postprocess.merge`), the parts' volumes (`postprocess.part_volumes`) and, as an
+option, selection (`SelectionOptions.free_space`) use them. Clouds have no viewpoint: zeros.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import rotation as so3
+from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
+from .padding import pair_chunk
+from .superquadric import log_inside_outside_and_gradient
+from .workspace import Workspace
+
+
+def free_space_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
+    """(M,) for models theta (M, 11): the valid points whose viewing ray passes through the model
+    in front of them (by more than tau, in units of the local noise; `_free_space`). Candidates
+    are the points whose ray passes within the model's bounding sphere, in front of the point.
+    Images only (clouds have no viewpoint): zeros otherwise. `box`: sampled with `_free_space_box`."""
+    M = len(theta)
+    out = np.zeros(M, np.int64)
+    if ws.dom.views is None or M == 0:
+        return out
+    P, v = ws.host_points, ws.dom.views
+    c = theta[:, TRANSLATION]
+    radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, LOG_SIZE]), -1))
+    pairs_m, pairs_p = [], []
+    for i in range(M):
+        w = P - c[i]
+        t = np.einsum("pj,pj->p", w, v)  # > 0: the model's centre is in front of p
+        perp2 = np.einsum("pj,pj->p", w, w) - t * t
+        cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > ws.tau))
+        pairs_m.append(np.full(cand.size, i))
+        pairs_p.append(cand)
+    model, point = np.concatenate(pairs_m), np.concatenate(pairs_p)
+    if model.size == 0:
+        return out
+    margin = ws.tau * (np.ones(point.size) if ws.scale is None else ws.scale[point])
+    return _ray_hits(ws, theta, model, P[point], v[point], margin, box)
+
+
+def _ray_hits(ws: Workspace, theta, model, ends, rays, margin, box: bool = False) -> np.ndarray:
+    """(M,) counts of the pairs e whose ray, back from `ends[e]` along `-rays[e]` (from `margin[e]`
+    on), passes through the model `theta[model[e]]` (`_free_space`), in fixed-size chunks."""
+    theta_d = np.asarray(theta, np.dtype(ws.dtype))
+    n = pair_chunk(model.size)
+    hit = np.zeros(model.size, bool)
+    for s in range(0, model.size, n):
+        m = min(n, model.size - s)
+        mi, pts, ray, mg = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
+        mi[:m], pts[:m], ray[:m], mg[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], margin[s : s + m]
+        args = (
+            jnp.asarray(theta_d[mi]),
+            jnp.asarray(pts, ws.dtype),
+            jnp.asarray(ray, ws.dtype),
+            jnp.arange(n, dtype=jnp.int32),
+            jnp.asarray(mg, ws.dtype),
+        )
+        if box:  # back to the camera at most (its plane, orthographic)
+            limit = np.einsum("ej,ej->e", pts + ws.centre, ray)
+            hit[s : s + m] = np.asarray(_free_space_box(*args, jnp.asarray(limit, ws.dtype)))[:m]
+        else:
+            hit[s : s + m] = np.asarray(_free_space(*args))[:m]
+    return np.bincount(model[hit], minlength=len(theta))
+
+
+def void_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
+    """(M,) for models theta (M, 11): the pixels with no return (`_Domain.void_rays`) whose viewing
+    ray passes through the model (`_free_space` along the ray's chord of the bounding sphere). The
+    camera saw no surface there, so a model there is contradicted. Pinhole images only: zeros
+    otherwise. `box`: sampled with `_free_space_box`."""
+    M = len(theta)
+    out = np.zeros(M, np.int64)
+    v = ws.dom.void_rays
+    if v is None or M == 0 or len(v) == 0:
+        return out
+    o = -ws.centre  # the camera, in the runner's frame
+    c = theta[:, TRANSLATION]
+    radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, LOG_SIZE]), -1))
+    pairs_m, ends, dirs = [], [], []
+    for i in range(M):
+        t = (c[i] - o) @ v.T  # along each ray to the model's centre
+        perp2 = np.sum((c[i] - o) ** 2) - t * t
+        cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > 0))
+        pairs_m.append(np.full(cand.size, i))
+        ends.append(o + (t[cand] + radius[i])[:, None] * v[cand])  # behind the sphere, on the ray
+        dirs.append(v[cand])
+    model, end, ray = np.concatenate(pairs_m), np.concatenate(ends), np.concatenate(dirs)
+    if model.size == 0:
+        return out
+    return _ray_hits(ws, theta, model, end, ray, np.zeros(model.size), box)
+
+
+_RAY_SAMPLES = 16
+
+
+@jax.jit
+def _free_space(theta, points, views, point, margin):
+    """Whether the model `theta[e]` occupies the free space in front of the point `points[point[e]]`:
+    any of `_RAY_SAMPLES` samples on its viewing ray, from `margin[e]` in front of the point back to the
+    near side of the model's bounding sphere, lies inside the model (log F < 0, eq. 5). The camera saw
+    through there, so a model that fills it is contradicted by the data. theta (E, 11), points (P, 3),
+    views (P, 3) unit rays, point (E,) int32, margin (E,) -> (E,) bool.
+
+    The samples span the sphere's chord: a swollen model (a bar 40 m long and 5 cm thick across the
+    ray) is sampled every few metres and seldom seen; `_free_space_box` samples the box's chord."""
+    rot = jax.vmap(so3.exp)(theta[:, ROTATION])
+    p, v, c = points[point], views[point], theta[:, TRANSLATION]
+    radius = jnp.sqrt(jnp.sum(jnp.exp(2.0 * theta[:, LOG_SIZE]), -1))
+    reach = jnp.sum((p - c) * v, -1) + radius  # how far back towards the camera to look
+    frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
+    back = margin[:, None] + jnp.maximum(reach - margin, 0.0)[:, None] * frac  # (E, S)
+    q = p[:, None] - back[..., None] * v[:, None]
+    x = jnp.einsum("esi,eij->esj", q - c[:, None], rot)
+    log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, LOG_SIZE], theta[:, None, EPSILON])
+    return jnp.any(log_f < 0.0, -1) & (reach > margin)
+
+
+@jax.jit
+def _free_space_box(theta, points, views, point, margin, limit):
+    """`_free_space` with the samples on the ray's chord of the model's bounding box, between
+    `margin[e]` and `limit[e]` (the camera) back from the point: a bar 40 m long and 5 cm thick across
+    the ray is sampled across its 5 cm. limit (E,); the rest as `_free_space`."""
+    rot = jax.vmap(so3.exp)(theta[:, ROTATION])
+    p, v, c = points[point], views[point], theta[:, TRANSLATION]
+    x0 = jnp.einsum("ei,eij->ej", p - c, rot)  # the point, in the model frame
+    dx = -jnp.einsum("ei,eij->ej", v, rot)  # back towards the camera, unit
+    a = jnp.exp(theta[:, LOG_SIZE])
+    tiny = jnp.finfo(x0.dtype).tiny
+    big = jnp.finfo(x0.dtype).max
+    safe = jnp.where(jnp.abs(dx) > tiny, dx, tiny)
+    s1, s2 = (-a - x0) / safe, (a - x0) / safe
+    parallel = jnp.abs(dx) <= tiny  # within the slab for every s, or never
+    s_lo = jnp.where(parallel, jnp.where(jnp.abs(x0) <= a, -big, big), jnp.minimum(s1, s2))
+    s_hi = jnp.where(parallel, jnp.where(jnp.abs(x0) <= a, big, -big), jnp.maximum(s1, s2))
+    lo = jnp.maximum(jnp.max(s_lo, -1), margin)
+    hi = jnp.minimum(jnp.min(s_hi, -1), limit)
+    frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
+    back = lo[:, None] + jnp.maximum(hi - lo, 0.0)[:, None] * frac  # (E, S)
+    x = x0[:, None] + back[..., None] * dx[:, None]
+    log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, LOG_SIZE], theta[:, None, EPSILON])
+    return jnp.any(log_f < 0.0, -1) & (hi > lo)
