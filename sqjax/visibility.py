@@ -1,13 +1,18 @@
 """Visibility: a model that fills space the camera saw through is contradicted by the data.
 
 A range image's pixel says that its viewing ray is empty up to the observed point (and, with no return,
-empty as far as the sensor reaches). `free_space_violations` counts the observed points whose viewing
-ray passes through a model in front of them, `void_violations` the pixels with no return whose ray passes
-through it; merges (`postprocess.merge`), the parts' volumes (`postprocess.part_volumes`) and, as an
-option, selection (`SelectionOptions.free_space`) use them. Clouds have no viewpoint: zeros.
+empty as far as the sensor reaches). `seen_through` tells, pair by pair, whether a point's ray passes
+through a model's solid deeper than the noise: such a point cannot lie on the surface the camera saw of
+that model, so the model does not explain it (`Workspace.distances`, `ExtraOptions.visibility`).
+`free_space_violations` counts the observed points whose viewing ray passes through a model in front of
+them, `void_violations` the pixels with no return whose ray passes through it; merges
+(`postprocess.merge`), the parts' volumes (`postprocess.part_volumes`) and, as an option, selection
+(`SelectionOptions.free_space`) use them. Clouds have no viewpoint: never seen through, zeros.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -16,8 +21,10 @@ import numpy as np
 from . import rotation as so3
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .padding import pair_chunk
-from .superquadric import log_inside_outside_and_gradient
-from .workspace import Workspace
+from .superquadric import distance_from_log, log_inside_outside_and_gradient
+
+if TYPE_CHECKING:
+    from .workspace import Workspace
 
 
 def free_space_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
@@ -50,26 +57,43 @@ def free_space_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndar
 def _ray_hits(ws: Workspace, theta, model, ends, rays, margin, box: bool = False) -> np.ndarray:
     """(M,) counts of the pairs e whose ray, back from `ends[e]` along `-rays[e]` (from `margin[e]`
     on), passes through the model `theta[model[e]]` (`_free_space`), in fixed-size chunks."""
+    return np.bincount(model[ray_blocked(ws, theta, model, ends, rays, margin, box)], minlength=len(theta))
+
+
+def seen_through(ws: Workspace, theta, model, point) -> np.ndarray:
+    """(E,) whether the camera saw through the model theta[model[e]] (K, 11) on its way to the point
+    point[e]: its viewing ray passes through the model's solid deeper than tau (in units of the local
+    noise) before the point (`_seen_through`). Such a point is not on the surface the camera saw of
+    that model, however near a back face it lies. Clouds have no rays: never."""
+    if ws.dom.views is None or model.size == 0:
+        return np.zeros(model.size, bool)
+    depth = ws.tau * (np.ones(point.size) if ws.scale is None else ws.scale[point])
+    return _ray_kernel(ws, _seen_through, theta, model, ws.host_points[point], ws.dom.views[point], depth)
+
+
+def ray_blocked(ws: Workspace, theta, model, ends, rays, margin, box: bool = False) -> np.ndarray:
+    """(E,) whether the ray of pair e, back from `ends[e]` (workspace frame) along `-rays[e]` (from
+    `margin[e]` on), passes through the model `theta[model[e]]` (`_free_space`, or `_free_space_box`
+    with `box`)."""
+    return _ray_kernel(ws, _free_space_box if box else _free_space, theta, model, ends, rays, margin)
+
+
+def _ray_kernel(ws: Workspace, kernel, theta, model, ends, rays, per_pair) -> np.ndarray:
+    """`kernel(theta rows, ends, rays, index, per_pair[, limit])` over the pairs in fixed-size chunks
+    (`padding.pair_chunk`); the box-chord kernels also get `limit`, the distance back to the camera."""
     theta_d = np.asarray(theta, np.dtype(ws.dtype))
     n = pair_chunk(model.size)
     hit = np.zeros(model.size, bool)
     for s in range(0, model.size, n):
         m = min(n, model.size - s)
-        mi, pts, ray, mg = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
-        mi[:m], pts[:m], ray[:m], mg[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], margin[s : s + m]
-        args = (
-            jnp.asarray(theta_d[mi]),
-            jnp.asarray(pts, ws.dtype),
-            jnp.asarray(ray, ws.dtype),
-            jnp.arange(n, dtype=jnp.int32),
-            jnp.asarray(mg, ws.dtype),
-        )
-        if box:  # back to the camera at most (its plane, orthographic)
-            limit = np.einsum("ej,ej->e", pts + ws.centre, ray)
-            hit[s : s + m] = np.asarray(_free_space_box(*args, jnp.asarray(limit, ws.dtype)))[:m]
-        else:
-            hit[s : s + m] = np.asarray(_free_space(*args))[:m]
-    return np.bincount(model[hit], minlength=len(theta))
+        mi, pts, ray, val = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
+        mi[:m], pts[:m], ray[:m], val[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], per_pair[s : s + m]
+        host = theta_d.dtype  # numpy inputs: the kernel call transfers them (no eager device ops)
+        args = [theta_d[mi], pts.astype(host), ray.astype(host), np.arange(n, dtype=np.int32), val.astype(host)]
+        if kernel is not _free_space:  # back to the camera at most (its plane, orthographic)
+            args.append(np.einsum("ej,ej->e", pts + ws.centre, ray).astype(host))
+        hit[s : s + m] = np.asarray(kernel(*args))[:m]
+    return hit
 
 
 def void_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
@@ -124,11 +148,10 @@ def _free_space(theta, points, views, point, margin):
     return jnp.any(log_f < 0.0, -1) & (reach > margin)
 
 
-@jax.jit
-def _free_space_box(theta, points, views, point, margin, limit):
-    """`_free_space` with the samples on the ray's chord of the model's bounding box, between
-    `margin[e]` and `limit[e]` (the camera) back from the point: a bar 40 m long and 5 cm thick across
-    the ray is sampled across its 5 cm. limit (E,); the rest as `_free_space`."""
+def _box_chord(theta, points, views, point, margin, limit):
+    """Samples (E, S, 3) in the model frame on the viewing ray of each pair, over its chord of the model's
+    bounding box between `margin[e]` and `limit[e]` back from the point, and whether the chord is
+    not empty (E,)."""
     rot = jax.vmap(so3.exp)(theta[:, ROTATION])
     p, v, c = points[point], views[point], theta[:, TRANSLATION]
     x0 = jnp.einsum("ei,eij->ej", p - c, rot)  # the point, in the model frame
@@ -145,6 +168,26 @@ def _free_space_box(theta, points, views, point, margin, limit):
     hi = jnp.minimum(jnp.min(s_hi, -1), limit)
     frac = (jnp.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
     back = lo[:, None] + jnp.maximum(hi - lo, 0.0)[:, None] * frac  # (E, S)
-    x = x0[:, None] + back[..., None] * dx[:, None]
+    return x0[:, None] + back[..., None] * dx[:, None], hi > lo
+
+
+@jax.jit
+def _free_space_box(theta, points, views, point, margin, limit):
+    """`_free_space` with the samples on the ray's chord of the model's bounding box, between
+    `margin[e]` and `limit[e]` (the camera) back from the point: a bar 40 m long and 5 cm thick across
+    the ray is sampled across its 5 cm. limit (E,); the rest as `_free_space`."""
+    x, chord = _box_chord(theta, points, views, point, margin, limit)
     log_f, _, _ = log_inside_outside_and_gradient(x, theta[:, None, LOG_SIZE], theta[:, None, EPSILON])
-    return jnp.any(log_f < 0.0, -1) & (hi > lo)
+    return jnp.any(log_f < 0.0, -1) & chord
+
+
+@jax.jit
+def _seen_through(theta, points, views, point, depth, limit):
+    """Whether the viewing ray of `points[point[e]]`, between the point and `limit[e]` (the camera),
+    passes through the model `theta[e]` deeper than `depth[e]` (eq. 10 distance of a sample inside the
+    model from its surface): the camera saw through solid that noise cannot explain. A ray that only
+    grazes the model (its rim, within the noise) is not seen through. Shapes as `_free_space_box`."""
+    x, chord = _box_chord(theta, points, views, point, jnp.zeros_like(depth), limit)
+    log_f, log_gn, _ = log_inside_outside_and_gradient(x, theta[:, None, LOG_SIZE], theta[:, None, EPSILON])
+    deep = (log_f < 0.0) & (distance_from_log(log_f, log_gn) > depth[:, None])
+    return jnp.any(deep, -1) & chord

@@ -23,6 +23,7 @@ from .domain import Domain, noise_scale, robust_centre
 from .padding import call_size, pad_rows, pair_chunk, point_rows, refit_points
 from .solver import fit_padded
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
+from .visibility import seen_through
 
 if TYPE_CHECKING:
     from .options import SegmentOptions
@@ -110,18 +111,22 @@ class Workspace:
         """Eq. 10 distances (E,) float32 of the pairs (point[e] to model theta[model[e]]), whether
         each point is inside its model enlarged (E,) bool and whether the model's surface there faces
         away from the camera (E,) bool (see `_pair_distances`). theta (K, 11); model, point (E,).
+        Distances are in units of the local noise over `noise.sigma` (`Noise.scale`); with
+        `ExtraOptions.visibility` a point the camera saw through the model to reach
+        (`visibility.seen_through`, tested where the surface faces away) is at distance inf: no model
+        explains what it would hide.
 
         Only the pairs asked for are computed, in fixed chunks (`padding.pair_chunk`), a few queued
         ahead of the one read back. Each pair gets its model's row of theta, gathered here, so the
-        kernel compiles once per chunk size whatever the number of models. Distances are in units of
-        the local noise over `noise.sigma` (`Noise.scale`).
+        kernel compiles once per chunk size whatever the number of models.
         """
         E = model.size
         d, inside, away = np.empty(E, np.float32), np.empty(E, bool), np.empty(E, bool)
         if E == 0:
             return d, inside, away
         theta = np.asarray(theta, np.dtype(self.dtype))
-        args = (jnp.asarray(self.opts.growth.enlarge, self.dtype), jnp.asarray(self.noise.margin, self.dtype))
+        host = np.dtype(self.dtype)  # numpy inputs: the kernel call transfers them (no eager device ops)
+        args = (host.type(self.opts.growth.enlarge), host.type(self.noise.margin))
         n = pair_chunk(E)
 
         def read(s, out):
@@ -133,14 +138,18 @@ class Workspace:
         for s in range(0, E, n):
             mi, pi = np.zeros(n, np.int64), np.zeros(n, np.int32)
             mi[: min(n, E - s)], pi[: min(n, E - s)] = model[s : s + n], point[s : s + n]
-            th = jnp.asarray(theta[mi], self.dtype)
-            pending.append((s, _pair_distances(th, self.points, self.views, jnp.asarray(pi), *args)))
+            pending.append((s, _pair_distances(theta[mi], self.points, self.views, pi, *args)))
             if len(pending) > _QUEUE:
                 read(*pending.pop(0))
         for item in pending:
             read(*item)
         if self.scale is not None:
             d /= self.scale[point]
+        if self.opts.extras.visibility and away.any():
+            # visibility: a point whose ray passes through the model's solid (deeper than the noise)
+            # is not on the surface the camera saw of it, however near its back face: not explained
+            a = np.flatnonzero(away)
+            d[a[seen_through(self, theta, model[a], point[a])]] = np.inf
         return d, inside, away
 
     def fit(self, regions, theta0, size_bound=False):
@@ -160,6 +169,7 @@ class Workspace:
         opts = dataclasses.replace(self.opts.fit, multistart=theta0 is None, size_bound=np.asarray(size_bound))
         pts = np.zeros((K, N, 3))
         msk = np.zeros((K, N), bool)
+        host = np.dtype(self.dtype)  # numpy inputs: the kernel call transfers them
         for i, r in enumerate(regions):
             if r.size > max_points:
                 r = r[np.linspace(0, r.size - 1, max_points).astype(np.int64)]
@@ -169,9 +179,9 @@ class Workspace:
         rows = np.where(rows < K, rows, 0).reshape(-1, size)  # padding: copies of problem 0, dropped below
         pending = [
             fit_padded(
-                jnp.asarray(pts[r], self.dtype),
-                jnp.asarray(msk[r]),
-                None if theta0 is None else jnp.asarray(theta0[r], self.dtype),
+                pts[r].astype(host),
+                msk[r],
+                None if theta0 is None else theta0[r].astype(host),
                 opts,
             )[0]
             for r in rows
