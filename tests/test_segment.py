@@ -129,8 +129,8 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     monkeypatch.setattr(workspace.Workspace, "fit", record_refit)
     image, _ = paper_scene("two_cylinders", noise=0.002)
     seg = segment(image, merge=False)
-    # points: 128 when every region fits (seed windows), else max_points = 512
-    assert all(N in (128, 512) for _, N in calls), sorted(set(calls))
+    # points: 128 when every region fits (seed windows), else max_points = 256
+    assert all(N in (128, 256) for _, N in calls), sorted(set(calls))
     assert all(K == padding.call_size(2, N) for K, N in calls), sorted(set(calls))  # CPU: one chunk size
     assert all(shapes == 1 for _, _, shapes in refits), refits
     assert sum(made for _, made, _ in refits) == len(calls)
