@@ -16,12 +16,32 @@ from .visibility import free_space_violations, void_violations
 from .workspace import Workspace
 
 
-def merge(ws: Workspace, models: Models) -> Models:
-    """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits)."""
+def merge(ws: Workspace, models: Models, tried: dict | None = None) -> Models:
+    """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits).
+
+    `tried` remembers the outcome of every pair (keyed by both models' parameters and regions), so
+    that a later round (after reseeding) fits only the pairs it has not seen: stopped models keep
+    their parameters and regions exactly, and a pair's union fit and tests depend on nothing else."""
+    tried = {} if tried is None else tried
     keep_fraction = ws.opts.growth.keep_fraction
-    pairs = merge_candidates(ws.host_points, models.regions)
-    if not pairs:
+    key = [models.theta[i].tobytes() + np.packbits(models.regions[i]).tobytes() for i in range(len(models.theta))]
+    candidates = merge_candidates(ws.host_points, models.regions)
+    pairs = [p for p in candidates if (key[p[0]], key[p[1]]) not in tried]
+    new = _union_hypotheses(ws, models, pairs, keep_fraction) if pairs else {}
+    for p in pairs:
+        tried[key[p[0]], key[p[1]]] = new.get(p)
+    found = [tried[key[i], key[j]] for i, j in candidates]
+    found = [f for f in found if f is not None]
+    if not found:
         return models
+    theta, regions, dist = zip(*found)
+    out = models.concat(Models(np.stack(theta), np.stack(regions), list(dist)))
+    out.active[:] = False
+    return out
+
+
+def _union_hypotheses(ws: Workspace, models: Models, pairs: list, keep_fraction: float) -> dict:
+    """{pair: (theta, region, distances)} of the unions of `pairs` that pass the merge's tests."""
     unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
     theta, d, score = fit_best(ws, unions, multistart=True)
     keep, regions, dist = [], [], []
@@ -46,11 +66,7 @@ def merge(ws: Workspace, models: Models) -> Models:
         extra = seen(theta[keep]) - seen(models.theta)[np.array([pairs[k] for k in keep])].sum(1)
         ok = extra <= (1.0 - keep_fraction) * np.array([r.sum() for r in regions])
         keep, regions, dist = ([x for x, good in zip(a, ok) if good] for a in (keep, regions, dist))
-    if not keep:
-        return models
-    out = models.concat(Models(theta[keep], np.stack(regions), dist))
-    out.active[:] = False
-    return out
+    return {pairs[k]: (theta[k], r, dk) for k, r, dk in zip(keep, regions, dist)}
 
 
 MERGE_NEIGHBOURS = 4

@@ -166,7 +166,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     opts, dom = ws.opts, ws.dom
     models, ws = seed(ws)
     weights = opts.selection.weights or SelectionWeights.for_threshold(ws.tau)
-    history = []
+    history, tried_unions = [], {}
     stats = {
         "seeds": len(dom.seeds),
         "seed_models": len(models.theta),
@@ -207,7 +207,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     def final_selection(models):
         """Rejoin occlusion splits, select, drop the redundant."""
         if opts.extras.merge and len(models.theta) > 1:
-            models = merge(ws, models)
+            models = merge(ws, models, tried_unions)
         if len(models.theta):
             select_(models)
             stats["pruned"] = stats.get("pruned", 0) + prune_redundant(models, opts.extras.min_exclusive)
