@@ -198,6 +198,7 @@ def main(argv=None):
     ap.add_argument("--scenes", type=int, default=50, help="synthetic scenes")
     ap.add_argument("--multipart", type=int, default=42, help="multi-part object scenes")
     ap.add_argument("--mosd-step", type=int, default=4)
+    ap.add_argument("--devices", type=int, default=os.cpu_count() or 1, help="JAX CPU devices (1: no split)")
     ap.add_argument("--out", default="benchmarks/out/segment.json")
     ap.add_argument("--figures", default=None, help="folder for figures of the worst scenes of each suite")
     ap.add_argument("--worst", type=int, default=2, help="figures per suite with --figures")
@@ -216,6 +217,7 @@ def main(argv=None):
         help="a SegmentOptions field for an ablation (value parsed as a Python literal)",
     )
     args = ap.parse_args(argv)
+    devices = sqjax.parallel.use_cpu_cores(args.devices)  # before JAX runs anything
     import ast
 
     for kv in args.option:
@@ -231,6 +233,7 @@ def main(argv=None):
             "cores": os.cpu_count(),
             "python": platform.python_version(),
             "jax": __import__("jax").__version__,
+            "cpu_devices": devices,
         },
         "command": "python benchmarks/segment.py" + (" " + " ".join(argv or sys.argv[1:])).rstrip(),
         "date": time.strftime("%Y-%m-%d"),

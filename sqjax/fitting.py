@@ -14,9 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import parallel
 from .chart import NUM_PARAMS, num_params
 from .padding import bucket
-from .solver import fit_kernel, fit_sharded, use_devices
+from .solver import fit_kernel, fit_sharded
 from .status import FAILED, status_flags
 from .superquadric import EPSILON_RANGE, Superquadric
 
@@ -293,7 +294,7 @@ def _run_kernel(xp, pts, mask, fields, options):
         rep = lambda v: xp.concatenate([v[:K], xp.repeat(v[:1], Kb - K, 0)])
         pts, msk = rep(pts), rep(msk)
         fields = None if fields is None else tuple(rep(v) for v in fields)
-    kernel = fit_sharded if xp is np and use_devices(Kb) else fit_kernel
+    kernel = fit_sharded if xp is np and parallel.splits(Kb) else fit_kernel
     out = kernel(pts, msk, fields, options)
     if xp is np:  # crop in numpy: no small compiled ops per shape
         out = jax.tree.map(np.asarray, out)
@@ -335,7 +336,7 @@ def fit(
     so far-away coordinates lose nothing to float32; then padded (numpy) to power-of-two buckets (N at
     least 128), so one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
     differentiation at the optimum; the same steps in jax.numpy). When JAX has several CPU devices
-    (`XLA_FLAGS=--xla_force_host_platform_device_count=2`) and they divide the padded batch, the
+    (`parallel`: `jax_num_cpu_devices`) and they divide the padded batch, the
     problems are split between them (same kernel per problem, so the same results).
     """
     if options is not None and kw:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from . import parallel
+
 CHUNK_POINTS = 4096
 """On CPU the fitter fits `max(1, CHUNK_POINTS // N)` problems of N points at a time (`solver.map_problems`):
 a chunk's points and every intermediate of its LM steps then stay in cache."""
@@ -39,12 +41,12 @@ def call_size(K: int, N: int) -> int:
     from call to call (segmentation's refits), so that each (N, options) compiles few kernels.
 
     On CPU, which fits a call's problems `CHUNK_POINTS // N` at a time anyway, that chunk whatever K
-    (several calls for more): one kernel. A single problem then pays for a chunk, which measured less
-    than the kernel it saves (mOSD at 160 x 120, 7 scenes, 2026-12-02: steady-state time within 2%,
-    compile 79 -> 55 s). On an accelerator, which fits them side by side, the next of
-    `ACCELERATOR_BATCHES` (calls of 64 beyond): five kernels."""
+    (several calls for more), one chunk per CPU device (`parallel`): one kernel. A single problem then
+    pays for a chunk, which measured less than the kernel it saves (mOSD at 160 x 120, 7 scenes,
+    2026-12-02: steady-state time within 2%, compile 79 -> 55 s). On an accelerator, which fits them
+    side by side, the next of `ACCELERATOR_BATCHES` (calls of 64 beyond): five kernels."""
     if jax.default_backend() == "cpu":
-        return max(1, CHUNK_POINTS // N)
+        return max(1, CHUNK_POINTS // N) * parallel.cpu_devices()
     return next((b for b in ACCELERATOR_BATCHES if b >= K), ACCELERATOR_BATCHES[-1])
 
 

@@ -18,7 +18,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-import numpy as np
 import optimistix as optx
 
 from .cache import persistent_kernel
@@ -26,6 +25,7 @@ from .chart import BEND, LOG_SIZE, NUM_DEFORM, TRANSLATION, from_fields, pack, p
 from .initial import initial_states, moment_starts, switched
 from .lm import capped, cost_of, levenberg_marquardt
 from .padding import CHUNK_POINTS
+from .parallel import shard
 from .robust import reweighted, robust_scores
 from .superquadric import distance
 
@@ -198,16 +198,13 @@ fit_kernel = persistent_kernel(eqx.filter_jit(fit_problems))
 
 @eqx.filter_jit
 def fit_sharded(points, mask, init, opts):
-    """`fit_kernel` with the problems split over every local CPU device (one `shard_map` block each)."""
-    mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
-    spec = jax.sharding.PartitionSpec("k")
+    """`fit_kernel` with the problems split over every local CPU device (`parallel.shard`)."""
     body = lambda p, m, i: fit_problems(p, m, i, opts)
-    return jax.shard_map(
-        body, mesh=mesh, in_specs=(spec, spec, None if init is None else spec), out_specs=spec, check_vma=False
-    )(points, mask, init)
+    return shard(body, (True, True, init is not None))(points, mask, init)
 
 
-def use_devices(K: int) -> bool:
-    """Several local CPU devices (`XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`) dividing K."""
-    devices = jax.local_devices()
-    return len(devices) > 1 and K % len(devices) == 0 and devices[0].platform == "cpu"
+@eqx.filter_jit
+def fit_padded_sharded(points, mask, theta0, opts):
+    """`fit_padded` with the problems split over every local CPU device (`parallel.shard`)."""
+    body = lambda p, m, t: map_problems(p, m, t, opts)[:4]
+    return shard(body, (True, True, theta0 is not None))(points, mask, theta0)

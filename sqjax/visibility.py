@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import parallel
 from . import rotation as so3
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .padding import pair_chunk
@@ -89,10 +90,13 @@ def _ray_kernel(ws: Workspace, kernel, theta, model, ends, rays, per_pair) -> np
         mi, pts, ray, val = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
         mi[:m], pts[:m], ray[:m], val[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], per_pair[s : s + m]
         host = theta_d.dtype  # numpy inputs: the kernel call transfers them (no eager device ops)
-        args = [theta_d[mi], pts.astype(host), ray.astype(host), np.arange(n, dtype=np.int32), val.astype(host)]
+        split = parallel.splits(n)  # every argument is per pair: split, with each block's indices its own
+        index = np.arange(n, dtype=np.int32) % (n // parallel.cpu_devices() if split else n)
+        args = [theta_d[mi], pts.astype(host), ray.astype(host), index, val.astype(host)]
         if kernel is not _free_space:  # back to the camera at most (its plane, orthographic)
             args.append(np.einsum("ej,ej->e", pts + ws.centre, ray).astype(host))
-        hit[s : s + m] = np.asarray(kernel(*args))[:m]
+        run = parallel.sharded_kernel(kernel, (True,) * len(args)) if split else kernel
+        hit[s : s + m] = np.asarray(run(*args))[:m]
     return hit
 
 

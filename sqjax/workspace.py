@@ -17,11 +17,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import parallel
 from . import rotation as so3
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
 from .padding import call_size, pad_rows, pair_chunk, point_rows, refit_points
-from .solver import fit_padded
+from .solver import fit_padded, fit_padded_sharded
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 from .visibility import seen_through
 
@@ -128,6 +129,8 @@ class Workspace:
         host = np.dtype(self.dtype)  # numpy inputs: the kernel call transfers them (no eager device ops)
         args = (host.type(self.opts.growth.enlarge), host.type(self.noise.margin))
         n = pair_chunk(E)
+        split = (True, False, False, True, False, False)  # the pairs' rows and indices; the points whole
+        kernel = parallel.sharded_kernel(_pair_distances, split) if parallel.splits(n) else _pair_distances
 
         def read(s, out):
             m = min(n, E - s)
@@ -138,7 +141,7 @@ class Workspace:
         for s in range(0, E, n):
             mi, pi = np.zeros(n, np.int64), np.zeros(n, np.int32)
             mi[: min(n, E - s)], pi[: min(n, E - s)] = model[s : s + n], point[s : s + n]
-            pending.append((s, _pair_distances(theta[mi], self.points, self.views, pi, *args)))
+            pending.append((s, kernel(theta[mi], self.points, self.views, pi, *args)))
             if len(pending) > _QUEUE:
                 read(*pending.pop(0))
         for item in pending:
@@ -177,13 +180,9 @@ class Workspace:
         size = call_size(K, N)  # one kernel per refit: a long one's last call is full too
         rows = np.arange(-(-K // size) * size)
         rows = np.where(rows < K, rows, 0).reshape(-1, size)  # padding: copies of problem 0, dropped below
+        kernel = fit_padded_sharded if parallel.splits(size) else fit_padded
         pending = [
-            fit_padded(
-                pts[r].astype(host),
-                msk[r],
-                None if theta0 is None else theta0[r].astype(host),
-                opts,
-            )[0]
+            kernel(pts[r].astype(host), msk[r], None if theta0 is None else theta0[r].astype(host), opts)[0]
             for r in rows
         ]
         theta = np.concatenate([np.asarray(t) for t in pending])[:K].astype(np.float64)

@@ -69,16 +69,26 @@ _TWO_DEVICES = textwrap.dedent("""
     import jax, numpy as np, jax.numpy as jnp
     import sqjax.fitting as fitting
     from sqjax.fitting import FitOptions, fit
-    assert jax.device_count() == 2 and fitting.use_devices(4)
+    import sqjax.parallel as parallel
+    assert jax.device_count() == 2 and parallel.splits(4)
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(4, 64, 3)) * np.array([1.0, 0.6, 0.3])
     opts = FitOptions(max_steps=3, multistart=False, robust=True)
     sharded = fit(pts, options=opts)
-    fitting.use_devices = lambda K: False            # the same call on one device
+    parallel.splits = lambda K: False            # the same call on one device
     single = fit(pts, options=opts)
     assert np.array_equal(np.asarray(sharded.cost), np.asarray(single.cost))
     assert np.array_equal(np.asarray(sharded.distance), np.asarray(single.distance))
     assert np.array_equal(np.asarray(sharded.weight), np.asarray(single.weight))
+    # segmentation: refits and pair kernels split over the two devices, the same labels as on one
+    from sqjax import segment
+    from sqjax.scenes import random_scene
+    image, _ = random_scene(3, n_parts=(3, 3), shape=(60, 80))
+    parallel.splits = lambda K: K % 2 == 0
+    parallel.cpu_devices = lambda: 2
+    split = segment(image, window=6)
+    parallel.splits, parallel.cpu_devices = (lambda K: False), (lambda: 1)
+    assert np.array_equal(split.labels, segment(image, window=6).labels)
     print("ok")
 """)
 

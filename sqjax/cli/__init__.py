@@ -89,6 +89,9 @@ def main(argv=None) -> int:
     except SystemExit as e:  # --help, --version and usage errors (already reported)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     try:
+        from ..parallel import use_cpu_cores
+
+        use_cpu_cores()  # every core a JAX device: batches split over them (`sqjax.parallel`)
         if not getattr(args, "no_cache", False):
             from ..cache import cache_disabled_by_env, enable_compilation_cache
 

@@ -1,0 +1,59 @@
+"""Batches split over the local CPU devices.
+
+XLA runs a small kernel on one core. Given several CPU devices (JAX's `jax_num_cpu_devices`, or
+`XLA_FLAGS=--xla_force_host_platform_device_count=N`, set before JAX starts; the command line and the
+benchmarks give one per core), a batch of independent problems or pairs is split between them with
+`shard_map`, one block per device, and every problem runs the same code as on one device: the results
+are the same, bit for bit. On an accelerator, or with one CPU device, nothing is split.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import numpy as np
+
+
+def cpu_devices() -> int:
+    """The number of local CPU devices a batch can be split over (1 on an accelerator)."""
+    devices = jax.local_devices()
+    return len(devices) if devices[0].platform == "cpu" else 1
+
+
+def splits(n: int) -> bool:
+    """Whether a batch of n problems is split: several CPU devices, and they divide n."""
+    d = cpu_devices()
+    return d > 1 and n % d == 0
+
+
+def shard(fn, sharded: tuple[bool, ...]):
+    """`fn` (a function of arrays) over the CPU devices: the arguments marked in `sharded` split along
+    their first axis, the others replicated; the outputs joined along their first axis."""
+    mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
+    spec = jax.sharding.PartitionSpec
+    in_specs = tuple(spec("k") if s else spec() for s in sharded)
+    return jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=spec("k"), check_vma=False)
+
+
+@functools.cache
+def sharded_kernel(fn, sharded: tuple[bool, ...]):
+    """`jax.jit(shard(fn, sharded))`, made once per function and pattern."""
+    return jax.jit(shard(fn, sharded))
+
+
+def use_cpu_cores(n: int | None = None) -> int:
+    """Give JAX one CPU device per core (or `n`), so that batches are split over them.
+
+    Call it before JAX runs anything (the command line and the benchmarks do); afterwards, or when a
+    device count was chosen already (`XLA_FLAGS=--xla_force_host_platform_device_count`,
+    `JAX_NUM_CPU_DEVICES`), it changes nothing. Returns the number of CPU devices in effect."""
+    import os
+
+    chosen = "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "")
+    if not chosen and not os.environ.get("JAX_NUM_CPU_DEVICES"):
+        try:
+            jax.config.update("jax_num_cpu_devices", int(n or os.cpu_count() or 1))
+        except RuntimeError:  # JAX has started: its devices stay as they are
+            pass
+    return cpu_devices()
