@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
+from .cache import persistent_kernel
 from .superquadric import Superquadric
 
 NUM_PARAMS = 11
@@ -107,6 +108,7 @@ def to_world(theta: np.ndarray, centre: np.ndarray) -> Superquadric:
     return jax.tree.map(lambda v: v[:M], jax.tree.map(np.asarray, sq))
 
 
+@persistent_kernel
 @jax.jit
 def _volumes(theta):
     return to_superquadric(theta).volume

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
+from .cache import persistent_kernel
 from .padding import bucket, pad_rows
 
 # ----------------------------------------------------------------------------------------------------
@@ -178,4 +179,4 @@ def one_view_starts(points: np.ndarray, regions: list, origin: np.ndarray | None
     return np.stack(out)
 
 
-_log_rotations = jax.jit(so3.log)
+_log_rotations = persistent_kernel(jax.jit(so3.log))

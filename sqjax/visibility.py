@@ -20,6 +20,7 @@ import numpy as np
 
 from . import parallel
 from . import rotation as so3
+from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .padding import pair_chunk
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
@@ -130,6 +131,7 @@ def void_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
 _RAY_SAMPLES = 16
 
 
+@persistent_kernel
 @jax.jit
 def _free_space(theta, points, views, point, margin):
     """Whether the model `theta[e]` occupies the free space in front of the point `points[point[e]]`:
@@ -175,6 +177,7 @@ def _box_chord(theta, points, views, point, margin, limit):
     return x0[:, None] + back[..., None] * dx[:, None], hi > lo
 
 
+@persistent_kernel
 @jax.jit
 def _free_space_box(theta, points, views, point, margin, limit):
     """`_free_space` with the samples on the ray's chord of the model's bounding box, between
@@ -185,6 +188,7 @@ def _free_space_box(theta, points, views, point, margin, limit):
     return jnp.any(log_f < 0.0, -1) & chord
 
 
+@persistent_kernel
 @jax.jit
 def _seen_through(theta, points, views, point, depth, limit):
     """Whether the viewing ray of `points[point[e]]`, between the point and `limit[e]` (the camera),

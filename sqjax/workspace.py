@@ -19,6 +19,7 @@ import numpy as np
 
 from . import parallel
 from . import rotation as so3
+from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
 from .padding import call_size, pad_rows, pair_chunk, point_rows, refit_points
@@ -189,6 +190,7 @@ class Workspace:
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 
 
+@persistent_kernel
 @jax.jit
 def _pair_distances(theta, points, views, point, enlarge, margin):
     """Eq. 10 distance of `points[point[e]]` to the model `theta[e]`, whether the point lies inside

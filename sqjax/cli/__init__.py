@@ -89,9 +89,12 @@ def main(argv=None) -> int:
     except SystemExit as e:  # --help, --version and usage errors (already reported)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     try:
-        from ..parallel import use_cpu_cores
+        if args.command != "demo":
+            # every core a JAX device, batches split over them (`sqjax.parallel`): 30% off a 160 x 120
+            # scene, for about 4 s of tracing per process that the one-scene demo would not win back
+            from ..parallel import use_cpu_cores
 
-        use_cpu_cores()  # every core a JAX device: batches split over them (`sqjax.parallel`)
+            use_cpu_cores()
         if not getattr(args, "no_cache", False):
             from ..cache import cache_disabled_by_env, enable_compilation_cache
 
