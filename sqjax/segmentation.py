@@ -166,7 +166,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     opts, dom = ws.opts, ws.dom
     models, ws = seed(ws)
     weights = opts.selection.weights or SelectionWeights.for_threshold(ws.tau)
-    history, tried_unions = [], {}
+    history, tried_unions, reseeded = [], {}, set()
     stats = {
         "seeds": len(dom.seeds),
         "seed_models": len(models.theta),
@@ -225,6 +225,9 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         # in (a plate's border around the box on it, windows touching an edge); a piece that no
         # superquadric explains fails the seed test
         fresh += free_components(free, dom.neighbours, opts.seeds.min_seed_points)
+        # a seed that had its chance in an earlier round and left the same data unexplained would
+        # only grow again as it did: not tried twice
+        fresh = [ids for ids in fresh if (key := np.sort(ids).tobytes()) not in reseeded and not reseeded.add(key)]
         new = seed(ws, fresh)[0] if fresh else None
         if new is None or not len(new.theta):
             break
