@@ -103,6 +103,15 @@ class SeedOptions:
       32.5% -> 44.2% at T = 0.5, synthetic 100% both; noise regions rise (mOSD 22.7% -> 33.2%).
       Quadrants only in the reseed rounds (where the first pass left data unexplained) gained less and
       added as much noise. False = one window size, as in the paper.
+    - `surface`: range images: in the reseed rounds, the unexplained points that no seed window covers
+      get seeds of `min_seed_points` grown along the surface (`seeds.surface_seeds`), so that parts
+      narrower than the smallest window (legs two or three pixels wide, faces between the depth edges
+      of clutter) get seeds. Measured over every suite (benchmarks/RESULTS.md, 2026-12-03): mOSD
+      88.8% -> 88.1% correct (complex 68.8% -> 78.1%, cylindric 92.1% -> 81.0%: cup rims split off;
+      missed 3.9% -> 0.7%, noise regions 9.6% -> 6.9%), meshes 49.4% -> 55.8% (T = 0.5: 75.3% ->
+      87.0%), multi-part and synthetic unchanged; 14% more time per mOSD scene. In the first round
+      as well (with the window seeds) they gained more on meshes (59.7%) but split more objects
+      (mOSD 87.0%, table 95%) and took 26% more time.
     """
 
     window: int | None = None
@@ -110,6 +119,7 @@ class SeedOptions:
     min_seed_points: int = 2 * NUM_PARAMS
     seed_inlier_fraction: float = 0.9
     subdivide: bool = True
+    surface: bool = True
 
     def __post_init__(self):
         bad, number, flag = _checker(self)
@@ -123,7 +133,7 @@ class SeedOptions:
             )
         number("stride", 1, integer=True, optional=True)
         number("seed_inlier_fraction", 0, 1, lo_open=True)
-        flag("subdivide")
+        flag("subdivide", "surface")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,7 +2,8 @@
 whose fitted model is consistent with the noise start the hypotheses.
 
 A window holding a depth discontinuity is split into quadrants, down to the smallest window that can
-hold a seed (`seed_windows`, `SeedOptions.subdivide`): seeds at several scales. Each seed is fitted from
+hold a seed (`seed_windows`, `SeedOptions.subdivide`): seeds at several scales. Where even the smallest
+window does not fit, seeds grow along the surface (`surface_seeds`, `SeedOptions.surface`). Each seed is fitted from
 several one-view starts at once (`fit_best`), and kept when its fit explains its window (`seed`).
 """
 
@@ -64,6 +65,31 @@ def image_seeds(dom: Domain, window: int, stride: int, min_seed: int, subdivide:
         pixel_map(dom.index, dom.shape), dom.broken, window, stride, min_seed, subdivide
     )
     return whole + quadrants, smallest * smallest
+
+
+def surface_seeds(neighbours: np.ndarray, covered: np.ndarray, size: int) -> list:
+    """Seeds where no seed window fits: balls of `size` points grown along the adjacency
+    (`neighbours` (P, k), -1 = none or cut) from the points no window covers (`covered` (P,) bool),
+    each started at the first such point no earlier ball took. A ball follows the surface, never a
+    depth discontinuity: a leg two pixels wide, or a face between the depth edges of clutter, gets
+    seeds that a square window cannot give. Balls that reach fewer than `size` points are dropped."""
+    taken = covered.copy()
+    out = []
+    for c in np.flatnonzero(~covered):
+        if taken[c]:
+            continue
+        ball, seen, frontier = [c], {int(c)}, [int(c)]
+        while frontier and len(ball) < size:
+            nxt = [q for p in frontier for q in neighbours[p].tolist() if q >= 0 and q not in seen and not seen.add(q)]
+            ball += nxt
+            frontier = nxt
+        if len(ball) >= size:
+            ids = np.sort(np.array(ball[:size]))
+            taken[ids] = True
+            out.append(ids)
+        else:
+            taken[c] = True
+    return out
 
 
 def cloud_seeds(dom: Domain, window: int, min_seed: int) -> list:

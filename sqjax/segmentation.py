@@ -20,7 +20,7 @@ from .labelling import Part, label_full, label_image, parts
 from .options import SegmentOptions
 from .postprocess import merge, part_volumes, prune_redundant
 from .rangeimage import RangeImage
-from .seeds import cloud_seeds, image_seeds, seed
+from .seeds import cloud_seeds, image_seeds, seed, surface_seeds
 from .selection import SelectionWeights, build_q, select
 from .timing import Clock
 from .visibility import free_space_violations
@@ -225,6 +225,12 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         # in (a plate's border around the box on it, windows touching an edge); a piece that no
         # superquadric explains fails the seed test
         fresh += free_components(free, dom.neighbours, opts.seeds.min_seed_points)
+        if opts.seeds.surface and dom.is_image:
+            # and where no window fits (a leg two pixels wide), seeds that follow the surface
+            covered = np.zeros(ws.P, bool)
+            for ids in dom.seeds:
+                covered[ids] = True
+            fresh += surface_seeds(dom.neighbours, covered | ~free, opts.seeds.min_seed_points)
         # a seed that had its chance in an earlier round and left the same data unexplained would
         # only grow again as it did: not tried twice
         fresh = [ids for ids in fresh if (key := np.sort(ids).tobytes()) not in reseeded and not reseeded.add(key)]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import sqjax
-from sqjax import PinholeCamera, RangeImage, hoover, segment
+from sqjax import PinholeCamera, RangeImage, Superquadric, hoover, segment
 from sqjax.evaluate import volume_iou
 from sqjax.mesh import sample_surface
 from sqjax.scenes import paper_scene, random_scene
@@ -531,3 +531,55 @@ def test_a_point_the_camera_saw_through_a_model_is_not_explained_by_it():
     assert np.all(d < ws.tau)
     # the same test on the slab in front of the wall sees through it
     assert seen_through(ws, slab(ws, 5.0 - 0.3 - 0.15)[None], everywhere, np.arange(ws.P)).mean() > 0.5
+
+
+def test_surface_seeds_follow_a_strip_no_window_fits():
+    """Seeds grown along the adjacency (issue 11): on a strip three pixels wide, cut from the block
+    around it, every seed has min_seed_points points of the strip, starts off the covered points,
+    and the seeds cover the strip."""
+    from sqjax.domain import OFFSETS
+    from sqjax.seeds import surface_seeds
+
+    H, W, min_seed = 12, 40, 22
+    strip = np.zeros((H, W), bool)
+    strip[5:8, 2:38] = True
+    nb = -np.ones((H * W, len(OFFSETS)), np.int64)
+    for r in range(H):
+        for c in range(W):
+            for k, (dr, dc) in enumerate(OFFSETS):
+                r2, c2 = r + dr, c + dc
+                if 0 <= r2 < H and 0 <= c2 < W and strip[r, c] == strip[r2, c2]:  # the strip's edge is a cut
+                    nb[r * W + c, k] = r2 * W + c2
+    covered = ~strip.ravel()  # the block around it is covered by windows
+    seeds = surface_seeds(nb, covered, min_seed)
+    assert len(seeds) >= 3
+    for ids in seeds:
+        assert ids.size == min_seed and strip.ravel()[ids].all()
+    reached = np.zeros(H * W, bool)
+    for ids in seeds:
+        reached[ids] = True
+    assert reached[strip.ravel()].mean() > 0.8
+
+
+def test_thin_bent_legs_no_window_fits_are_found():
+    """Two legs three pixels wide, joined at a knee, in front of a wall: no seed window fits in them
+    and the pair is no one superquadric; seeds that follow the surface find both."""
+    from sqjax.raycast import render
+    from sqjax.scenes import default_camera
+
+    def leg(angle, end, length=0.6, r=0.04):
+        d = np.array([np.cos(angle), np.sin(angle), 0.0])
+        R = np.stack([np.array([0.0, 0.0, 1.0]), np.cross(d, [0.0, 0.0, 1.0]), d], 1)
+        return Superquadric.create(
+            size=(r, r, length / 2), epsilon=(0.3, 1.0), rotation=R, translation=end + d * length / 2
+        )
+
+    wall = Superquadric.create(size=(3.0, 3.0, 0.1), epsilon=(0.2, 0.2), translation=(0.0, 0.0, 5.2))
+    knee = np.array([0.1, 0.0, 4.0])
+    image = render(
+        [wall, leg(np.deg2rad(200), knee), leg(np.deg2rad(-70), knee)], default_camera(), (120, 160), noise=0.002
+    )
+    assert [(image.labels == i).sum() for i in (2, 3)] == [75, 75]  # pixels of each leg
+    without = hoover(image.labels, segment(image, surface=False).labels)
+    found = hoover(image.labels, segment(image).labels)
+    assert without.correct == 1 and found.correct == 3, (without.to_dict(), found.to_dict())
