@@ -88,20 +88,24 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray) -> list:
     return sorted({(min(i, j), max(i, j)) for i in range(M) for j in near[i]})
 
 
-def prune_redundant(models: Models, min_exclusive: float) -> int:
+def prune_redundant(models: Models, min_exclusive: float, min_points: int = 0) -> int:
     """Drop, one at a time, the selected model that explains the smallest share of points no other
-    selected model explains, while that share is below `min_exclusive`. Returns how many went.
+    selected model explains, while that share is below `min_exclusive` or that number of points is
+    below `min_points`. Returns how many went.
 
     Eq. 2 prices a model at K3 N_i points, so a model that duplicates another except for a few dozen
-    points can still be selected; such a model is not a part of its own.
+    points can still be selected; such a model is not a part of its own. Nor is one whose own points
+    are too few to determine its parameters (`min_points`: the seeds' `min_seed_points`, 2 per
+    parameter).
     """
     dropped = 0
     while len(models.theta) > 1:
         B = models.regions
         cover = B.sum(0)
-        excl = (B & (cover == 1)[None]).sum(1) / np.maximum(B.sum(1), 1)
-        i = int(np.argmin(excl))
-        if excl[i] >= min_exclusive:
+        own = (B & (cover == 1)[None]).sum(1)
+        excl = own / np.maximum(B.sum(1), 1)
+        i = int(np.argmin(np.where(own < min_points, -1.0, excl)))
+        if excl[i] >= min_exclusive and own[i] >= min_points:
             break
         models.take(np.arange(len(models.theta)) != i)
         dropped += 1

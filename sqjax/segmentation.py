@@ -210,7 +210,9 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             models = merge(ws, models, tried_unions)
         if len(models.theta):
             select_(models)
-            stats["pruned"] = stats.get("pruned", 0) + prune_redundant(models, opts.extras.min_exclusive)
+            stats["pruned"] = stats.get("pruned", 0) + prune_redundant(
+                models, opts.extras.min_exclusive, opts.seeds.min_seed_points
+            )
         return models
 
     recover_and_select(models, opts.growth.max_steps, 0)

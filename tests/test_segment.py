@@ -583,3 +583,21 @@ def test_thin_bent_legs_no_window_fits_are_found():
     without = hoover(image.labels, segment(image, surface=False).labels)
     found = hoover(image.labels, segment(image).labels)
     assert without.correct == 1 and found.correct == 3, (without.to_dict(), found.to_dict())
+
+
+def test_a_model_whose_own_points_cannot_determine_it_is_pruned():
+    """After the final selection a model must explain, alone, at least min_seed_points points (2 per
+    parameter) besides an exclusive share of min_exclusive: a 15-point fragment goes even though all
+    its points are its own; a 40-point part and a large one stay."""
+    from sqjax.hypotheses import Models
+    from sqjax.postprocess import prune_redundant
+
+    P = 1000
+    regions = np.zeros((3, P), bool)
+    regions[0, :900] = True
+    regions[1, 900:940] = True
+    regions[2, 940:955] = True
+    models = Models(np.zeros((3, 11)), regions, [np.zeros(r.sum(), np.float32) for r in regions])
+    assert prune_redundant(models, 0.2) == 0  # every share is exclusive: the share rule keeps all
+    assert prune_redundant(models, 0.2, min_points=22) == 1
+    assert models.regions.sum(1).tolist() == [900, 40]
