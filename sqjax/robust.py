@@ -20,12 +20,6 @@ def masked_median(v, mask):
 _TUKEY_C, _MAD_TO_SIGMA, _SCALE_FLOOR = 4.685, 1.4826, 1e-4
 """Tukey's constant (95% efficiency at the normal), MAD to standard deviation, scale floor (normalised units)."""
 
-_TUKEY_C, _MAD_TO_SIGMA, _SCALE_FLOOR = 4.685, 1.4826, 1e-4
-"""Tukey's constant (95% efficiency at the normal), MAD to standard deviation, scale floor (normalised units)."""
-
-_TUKEY_C, _MAD_TO_SIGMA, _SCALE_FLOOR = 4.685, 1.4826, 1e-4
-"""Tukey's constant (95% efficiency at the normal), MAD to standard deviation, scale floor (normalised units)."""
-
 
 def _robust_weights(state, points, mask, opts, widen=1.0):
     """Tukey biweight of the eq. 10 distances with the MAD scale (normalised points: rms radius 1),
