@@ -523,3 +523,16 @@ def test_errors_name_the_input(capsys, tmp_path):
         assert_one_line_error(code, err)
         assert str(few) in err and "[Errno" not in err
     assert not (tmp_path / "o").exists()  # the folder made for the results is removed again
+
+
+def test_one_input_stays_on_one_device_and_many_are_split_over_the_cores(
+    capsys, scene, monkeypatch, no_segment, tmp_path
+):
+    """One input: one JAX device, whose kernels load from the disk cache (split kernels are traced in
+    every process: 5-9 s). Several inputs (here a folder): one device per core, traced once for all."""
+    calls = []
+    monkeypatch.setattr(importlib.import_module("sqjax.parallel"), "use_cpu_cores", lambda n=None: calls.append(n) or 1)
+    run(capsys, "segment", scene, "--out", tmp_path / "one")
+    assert calls == []
+    run(capsys, "segment", scene.parent, "--out", tmp_path / "many")
+    assert calls == [None]

@@ -81,6 +81,12 @@ def build_parser() -> Parser:
     return p
 
 
+def _segments_many(args) -> bool:
+    from .segment import wants_many
+
+    return wants_many(args)
+
+
 def main(argv=None) -> int:
     """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit status."""
     parser = build_parser()
@@ -89,9 +95,11 @@ def main(argv=None) -> int:
     except SystemExit as e:  # --help, --version and usage errors (already reported)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     try:
-        if args.command != "demo":
+        if args.command == "segment" and _segments_many(args):
             # every core a JAX device, batches split over them (`sqjax.parallel`): 30% off a 160 x 120
-            # scene, for about 4 s of tracing per process that the one-scene demo would not win back
+            # scene, for 5-9 s of tracing per process (split kernels are not kept on disk) that only
+            # many scenes win back. One input stays on one device, whose kernels load from the disk
+            # cache: a 640 x 480 mOSD scene, second call, 19.7 -> 9.8 s wall (2026-12-03)
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()
