@@ -107,9 +107,10 @@ class SeedOptions:
       get seeds of `min_seed_points` grown along the surface (`seeds.surface_seeds`), so that parts
       narrower than the smallest window (legs two or three pixels wide, faces between the depth edges
       of clutter) get seeds. Measured over every suite (benchmarks/RESULTS.md, 2026-12-03): mOSD
-      88.8% -> 88.1% correct (complex 68.8% -> 78.1%, cylindric 92.1% -> 81.0%: cup rims split off;
-      missed 3.9% -> 0.7%, noise regions 9.6% -> 6.9%), meshes 49.4% -> 55.8% (T = 0.5: 75.3% ->
-      87.0%), multi-part and synthetic unchanged; 14% more time per mOSD scene. In the first round
+      88.8% -> 88.1% correct (complex 68.8% -> 78.1%; cylindric 92.1% -> 81.0%, as the inside of a
+      cup, which a solid would hide, now gets parts of its own; missed 3.9% -> 0.7%, noise regions
+      9.6% -> 6.9%), meshes 49.4% -> 55.8% (T = 0.5: 75.3% -> 87.0%), multi-part and synthetic
+      unchanged; 14% more time per mOSD scene. In the first round
       as well (with the window seeds) they gained more on meshes (59.7%) but split more objects
       (mOSD 87.0%, table 95%) and took 26% more time.
     """
