@@ -218,6 +218,8 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     recover_and_select(models, opts.growth.max_steps, 0)
     report("merge", 0)
     models = final_selection(models)
+    windowed = np.zeros(ws.P, bool)  # the points some seed window covers
+    windowed[np.concatenate(dom.seeds) if dom.seeds else []] = True
     for round_ in range(1, opts.extras.reseed + 1):
         # Another chance for what the final models leave unexplained: seeds lying there grow beside
         # the (stopped) selected models and compete with them in the selections.
@@ -229,10 +231,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         fresh += free_components(free, dom.neighbours, opts.seeds.min_seed_points)
         if opts.seeds.surface and dom.is_image:
             # and where no window fits (a leg two pixels wide), seeds that follow the surface
-            covered = np.zeros(ws.P, bool)
-            for ids in dom.seeds:
-                covered[ids] = True
-            fresh += surface_seeds(dom.neighbours, covered | ~free, opts.seeds.min_seed_points)
+            fresh += surface_seeds(dom.neighbours, windowed | ~free, opts.seeds.min_seed_points)
         # a seed that had its chance in an earlier round and left the same data unexplained would
         # only grow again as it did: not tried twice
         fresh = [ids for ids in fresh if (key := np.sort(ids).tobytes()) not in reseeded and not reseeded.add(key)]

@@ -170,16 +170,16 @@ def map_problems(points, mask, theta0, opts):
     return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts), (points, mask, theta0), batch_size=chunk)
 
 
-@persistent_kernel
-@eqx.filter_jit
-def fit_padded(points, mask, theta0, opts):
-    """The batch kernel: points (K, N, 3), mask (K, N), theta0 (K, P) or None -> theta, cost, converged, distance.
+def padded_problems(points, mask, theta0, opts):
+    """points (K, N, 3), mask (K, N), theta0 (K, P) or None -> theta, cost, converged, distance.
 
-    One compiled call per (K, N, dtype, options); `fit` pads to power-of-two buckets to keep that set
-    small. `theta` is the global chart [log a, e, rotation vector, t, (Kx, Ky, k, alpha)]. With the
-    compilation cache on, its lowered form is kept on disk too (`cache.persistent_kernel`).
-    """
+    `theta` is the global chart [log a, e, rotation vector, t, (Kx, Ky, k, alpha)]."""
     return map_problems(points, mask, theta0, opts)[:4]
+
+
+fit_padded = persistent_kernel(eqx.filter_jit(padded_problems))
+"""The batch kernel of segmentation's refits: one compiled call per (K, N, dtype, options), its lowered
+form kept on disk with the compilation cache (`cache.persistent_kernel`)."""
 
 
 def fit_problems(points, mask, init, opts):
@@ -196,15 +196,19 @@ fit_kernel = persistent_kernel(eqx.filter_jit(fit_problems))
 """The kernel `fit` calls: one compile per (padded K, padded N, dtype, options, init or not)."""
 
 
-@eqx.filter_jit
-def fit_sharded(points, mask, init, opts):
-    """`fit_kernel` with the problems split over every local CPU device (`parallel.shard`)."""
-    body = lambda p, m, i: fit_problems(p, m, i, opts)
-    return shard(body, (True, True, init is not None))(points, mask, init)
+def _split_over_devices(problems):
+    """`problems(points, mask, start, opts)` jitted with the problems split over every local CPU device
+    (`parallel.shard`; the start, when given, split with them)."""
+
+    @eqx.filter_jit
+    def run(points, mask, start, opts):
+        body = lambda p, m, s: problems(p, m, s, opts)
+        return shard(body, (True, True, start is not None))(points, mask, start)
+
+    return run
 
 
-@eqx.filter_jit
-def fit_padded_sharded(points, mask, theta0, opts):
-    """`fit_padded` with the problems split over every local CPU device (`parallel.shard`)."""
-    body = lambda p, m, t: map_problems(p, m, t, opts)[:4]
-    return shard(body, (True, True, theta0 is not None))(points, mask, theta0)
+fit_sharded = _split_over_devices(fit_problems)
+"""`fit_kernel` with the problems split over the CPU devices."""
+fit_padded_sharded = _split_over_devices(padded_problems)
+"""`fit_padded` with the problems split over the CPU devices."""

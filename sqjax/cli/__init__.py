@@ -81,12 +81,6 @@ def build_parser() -> Parser:
     return p
 
 
-def _segments_many(args) -> bool:
-    from .segment import wants_many
-
-    return wants_many(args)
-
-
 def main(argv=None) -> int:
     """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit status."""
     parser = build_parser()
@@ -95,7 +89,9 @@ def main(argv=None) -> int:
     except SystemExit as e:  # --help, --version and usage errors (already reported)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     try:
-        if args.command == "segment" and _segments_many(args):
+        from .segment import wants_many
+
+        if args.command == "segment" and wants_many(args):
             # every core a JAX device, batches split over them (`sqjax.parallel`): 30% off a 160 x 120
             # scene, for 5-9 s of tracing per process (split kernels are not kept on disk) that only
             # many scenes win back. One input stays on one device, whose kernels load from the disk
