@@ -149,14 +149,15 @@ class Superquadric(eqx.Module):
         return jax.tree.map(lambda v: v[index], self)
 
     def unbatch(self) -> list[Superquadric]:
-        """A batched superquadric (fields `(K, ...)`) -> K single ones (one transfer to the host, then
-        slices); a single one -> [it]."""
+        """A batched superquadric (fields `(K, ...)`) -> K single ones, whose fields are numpy slices of one
+        transfer to the host (a device array per field and model would cost more than the rest of a
+        segmentation's bookkeeping); a single one -> [it]."""
         if np.ndim(self.size) == 1:
             return [self]
         if np.ndim(self.size) != 2:
             raise ValueError(f"Superquadric.unbatch: expected one batch axis, got size of shape {np.shape(self.size)}")
         host = jax.tree.map(np.asarray, self)
-        return [jax.tree.map(lambda v, i=i: jnp.asarray(v[i]), host) for i in range(host.size.shape[0])]
+        return [jax.tree.map(lambda v, i=i: v[i], host) for i in range(host.size.shape[0])]
 
     @classmethod
     def from_dict(cls, d: dict) -> Superquadric:
