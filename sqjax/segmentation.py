@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 
 from .chart import NUM_PARAMS, to_world
-from .domain import Domain, cloud_domain, estimate_noise, free_components, image_domain, knn
+from .domain import Domain, cloud_domain, cloud_noise, estimate_noise, free_components, image_domain, knn
 from .growth import grow
 from .hypotheses import Models
 from .labelling import Part, label_full, label_image, parts
@@ -107,9 +107,8 @@ def _prepare(data, opts: SegmentOptions, k: int) -> tuple[Domain, Noise]:
     if pts.shape[0] < seeds.min_seed_points:
         raise ValueError(f"segment: {pts.shape[0]} valid points; at least {seeds.min_seed_points} are needed")
     nb = knn(pts, k)
-    spacing = np.median(np.linalg.norm(pts[nb[:, 0]] - pts, axis=1))
-    sigma = sensor.noise if sensor.noise is not None else float(max(spacing / 4, 1e-12))
     window = seeds.window or max(seeds.min_seed_points, 48)
+    sigma = sensor.noise if sensor.noise is not None else max(cloud_noise(pts, window), 1e-12)
     dom = cloud_domain(pts, rows, n_rows, nb)
     dom = dataclasses.replace(dom, seeds=cloud_seeds(dom, window, seeds.min_seed_points), seed_size=window)
     return dom, Noise(sigma, sensor.threshold if sensor.threshold is not None else sensor.threshold_factor * sigma)
