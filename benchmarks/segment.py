@@ -18,6 +18,11 @@ Suites:
   cycling through the kinds; also the volume IoU of each correctly found part with its true model.
 - `meshes`: the meshes of ../shared/data whose connected components are their parts (pyvista ant and
   airplane, trimesh teapot, box.STL, multibody.stl), each rendered from 3 viewpoints at 160 x 120.
+- `clouds`: the cloud path (k-nearest-neighbour adjacency, no viewpoint, `domain.cloud_noise`) on
+  data with truth: every third mOSD scene and the first half of the multi-part scenes, each given as
+  the bare (P, 3) array of its valid pixels' points and scored on those points; and every shared
+  single-object cloud (`robotology_*`, EMS single examples), which has no part labels: its row counts
+  the parts found (one object, so 1 is right; a drill's body and handle may be 2).
 
 Every suite scores parts with at least `MIN_VISIBLE` = 30 visible pixels (smaller ones are left out of
 the score, their pixels ignored). Scores: Hoover et al. (1996) at T = 0.8 and T = 0.5 (correct, over-,
@@ -143,8 +148,40 @@ def summarise(rows):
     return out
 
 
+def cloud_scenes(args, scenes_mosd, n_mp):
+    """The `clouds` suite: [(name, thunk returning (points (P, 3), {"truth": (P,) labels}))]."""
+
+    def bare(image, truth):
+        return image.points[image.valid], {"truth": np.asarray(truth)[image.valid]}
+
+    def mosd(f):
+        image = sqjax.read_range_image(f).subsample(args.mosd_step)
+        return bare(image, mosd_truth(image.labels))
+
+    def mp(s):
+        image, _ = multipart_scene(s, OBJECTS[s % len(OBJECTS)])
+        return bare(image, image.labels)
+
+    def single(f):
+        points = sqjax.read_points(f)
+        return points, {"truth": np.zeros(len(points), np.int64)}
+
+    files = scenes_mosd[:: 6 if args.quick else 3]
+    singles = sorted(DATA.glob("robotology_*/*.txt")) + sorted(
+        DATA.glob("ems_superquadric_examples/single_superquadric/*.ply")
+    )
+    return (
+        [(f"mosd:{f.stem}", lambda f=f: mosd(f)) for f in files]
+        + [(f"multipart:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: mp(s)) for s in range((n_mp + 1) // 2)]
+        + [(f"single:{f.stem}", lambda f=f: single(f)) for f in singles]
+    )
+
+
 def perturbed(image, eps):
-    """`image` with its depths and organised points scaled by 1 + eps (see `--perturb`)."""
+    """`image` with its depths and organised points scaled by 1 + eps (see `--perturb`); a cloud's
+    points scaled."""
+    if isinstance(image, np.ndarray):
+        return image * (1 + eps)
     po = image.points_override
     return dataclasses.replace(
         image, depth=image.depth * (1 + eps), points_override=None if po is None else po * (1 + eps)
@@ -203,7 +240,7 @@ def mesh_scene(path, view, shape=(120, 160), noise=0.005):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--suites", default="synthetic,mosd,multipart,meshes")
+    ap.add_argument("--suites", default="synthetic,mosd,multipart,meshes,clouds")
     ap.add_argument("--scenes", type=int, default=50, help="synthetic scenes")
     ap.add_argument("--multipart", type=int, default=42, help="multi-part object scenes")
     ap.add_argument("--mosd-step", type=int, default=4)
@@ -291,6 +328,9 @@ def main(argv=None):
             for v in range(1 if args.quick else 3)
         ]
 
+    if "clouds" in suites:
+        scenes["clouds"] = cloud_scenes(args, scenes_mosd=sorted((DATA / "mosd").glob("*/*.pcd")), n_mp=n_mp)
+
     categories = mosd_categories()
     for suite, items in scenes.items():
         rows, found = [], []
@@ -298,7 +338,10 @@ def main(argv=None):
             image, kw = make()
             if args.perturb:
                 image = perturbed(image, args.perturb)
-            truth = image.labels if suite != "mosd" else mosd_truth(image.labels)
+            if suite == "clouds":
+                truth = kw.pop("truth")
+            else:
+                truth = image.labels if suite != "mosd" else mosd_truth(image.labels)
             row = {"scene": name, **run_scene(image, truth, **kw, found=found)}
             if suite == "mosd":
                 row["category"] = categories.get(name, "?")
@@ -309,13 +352,22 @@ def main(argv=None):
         if args.labels:
             Path(args.labels).mkdir(parents=True, exist_ok=True)
             np.savez_compressed(Path(args.labels) / f"{suite}.npz", **{n: f for (n, _), f in zip(items, found)})
-        results[suite] = {"rows": rows, "summary": summarise(rows)}
+        scored = [r for r in rows if r["truth_parts"] > 0]
+        results[suite] = {"rows": rows, "summary": summarise(scored or rows)}
+        if suite == "clouds":
+            for kind in ("mosd", "multipart"):
+                part = [r for r in rows if r["scene"].startswith(kind + ":")]
+                if part:
+                    results[suite][kind] = summarise(part)
+            results[suite]["single_object_parts"] = {
+                r["scene"].split(":", 1)[1]: r["found_parts"] for r in rows if r["scene"].startswith("single:")
+            }
         if suite == "mosd":
             results[suite]["step"] = args.mosd_step
             results[suite]["categories"] = {
                 c: summarise([r for r in rows if r["category"] == c]) for c in sorted({r["category"] for r in rows})
             }
-        if args.figures:
+        if args.figures and suite != "clouds":
             worst = sorted(rows, key=lambda r: (r["correct"] - r["truth_parts"], r["scene"]))[: args.worst]
             for r in worst:
                 image, kw = dict(items)[r["scene"]]()
@@ -354,6 +406,13 @@ def print_table(results):
             line(key, results[key]["summary"])
             for c, s in results[key].get("categories", {}).items():
                 line(f"  mosd/{c}", s)
+    if "clouds" in results:
+        line("clouds", results["clouds"]["summary"])
+        for kind in ("mosd", "multipart"):
+            if kind in results["clouds"]:
+                line(f"clouds/{kind}", results["clouds"][kind])
+        parts = results["clouds"]["single_object_parts"]
+        print("single-object clouds, parts found: " + ", ".join(f"{k} {v}" for k, v in parts.items()))
     print(f"peak RSS {results['peak_rss_gib']:.2f} GiB")
 
 
