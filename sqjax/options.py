@@ -54,7 +54,9 @@ def _checker(obj):
 class SensorOptions:
     """The sensor model: what every admission and selection distance is measured in.
 
-    - `noise`: sensor noise std; None = estimated from the data (`domain.estimate_noise`).
+    - `noise`: sensor noise std; None = estimated from the data: range images from second
+      differences of the depth (`domain.estimate_noise`), clouds as the surface residual at the scale
+      of a part (`domain.cloud_noise`: stereo and registered scans are correlated along the surface).
     - `threshold`: admission distance tau (eq. 10); None = `threshold_factor * noise`.
     - `adaptive_noise`: when the noise is estimated, raise it to the typical residual of the seed fits
       (real surfaces are not exact superquadrics).
