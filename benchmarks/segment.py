@@ -148,33 +148,41 @@ def summarise(rows):
     return out
 
 
-def cloud_scenes(args, scenes_mosd, n_mp):
-    """The `clouds` suite: [(name, thunk returning (points (P, 3), {"truth": (P,) labels}))]."""
+def mosd_scene(f, step):
+    """An mOSD scene subsampled by `step`: (range image, truth: the objects and the table, 0 unknown)."""
+    image = sqjax.read_range_image(f).subsample(step)
+    return image, mosd_truth(image.labels)
+
+
+def cloud_scenes(mosd_files, step, n_multipart):
+    """The `clouds` suite: [(name, thunk returning (points (P, 3), truth (P,), run_scene kwargs))]:
+    the valid pixels of mOSD and multi-part scenes as bare clouds, and the single-object clouds
+    (truth all 0: only their parts are counted)."""
 
     def bare(image, truth):
-        return image.points[image.valid], {"truth": np.asarray(truth)[image.valid]}
-
-    def mosd(f):
-        image = sqjax.read_range_image(f).subsample(args.mosd_step)
-        return bare(image, mosd_truth(image.labels))
-
-    def mp(s):
-        image, _ = multipart_scene(s, OBJECTS[s % len(OBJECTS)])
-        return bare(image, image.labels)
+        return image.points[image.valid], np.asarray(truth)[image.valid], {}
 
     def single(f):
         points = sqjax.read_points(f)
-        return points, {"truth": np.zeros(len(points), np.int64)}
+        return points, np.zeros(len(points), np.int64), {}
 
-    files = scenes_mosd[:: 6 if args.quick else 3]
     singles = sorted(DATA.glob("robotology_*/*.txt")) + sorted(
         DATA.glob("ems_superquadric_examples/single_superquadric/*.ply")
     )
     return (
-        [(f"mosd:{f.stem}", lambda f=f: mosd(f)) for f in files]
-        + [(f"multipart:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: mp(s)) for s in range((n_mp + 1) // 2)]
+        [(f"mosd:{f.stem}", lambda f=f: bare(*mosd_scene(f, step))) for f in mosd_files]
+        + [
+            (f"multipart:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: bare(*multipart(s)[::2]))
+            for s in range(n_multipart)
+        ]
         + [(f"single:{f.stem}", lambda f=f: single(f)) for f in singles]
     )
+
+
+def multipart(s):
+    """Multi-part scene s: (range image, its true superquadrics, its labels)."""
+    image, parts = multipart_scene(s, OBJECTS[s % len(OBJECTS)])
+    return image, parts, image.labels
 
 
 def perturbed(image, eps):
@@ -294,54 +302,49 @@ def main(argv=None):
         "options": results_options,
         "perturb": args.perturb,
     }
-    scenes = {}  # suite -> [(name, thunk returning (image, run_scene kwargs))]
+    scenes = {}  # suite -> [(name, thunk returning (image or cloud, truth labels, run_scene kwargs))]
     if "synthetic" in suites:
-        scenes["synthetic"] = [
-            (f"random:{s}", lambda s=s: (sqjax.scenes.random_scene(s, n_parts=(2, 6))[0], {})) for s in range(n_syn)
-        ]
+
+        def synthetic(s):
+            image = sqjax.scenes.random_scene(s, n_parts=(2, 6))[0]
+            return image, image.labels, {}
+
+        scenes["synthetic"] = [(f"random:{s}", lambda s=s: synthetic(s)) for s in range(n_syn)]
     if "multipart" in suites:
 
         def mp(s):
-            image, parts = multipart_scene(s, OBJECTS[s % len(OBJECTS)])
-            return image, {"truth_sq": parts}
+            image, parts, truth = multipart(s)
+            return image, truth, {"truth_sq": parts}
 
         scenes["multipart"] = [(f"{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: mp(s)) for s in range(n_mp)]
+    mosd_files = sorted((DATA / "mosd").glob("*/*.pcd"))
     if "mosd" in suites:
-        files = sorted((DATA / "mosd").glob("*/*.pcd"))
-        if args.quick:
-            files = files[:: max(1, len(files) // 6)]
+        files = mosd_files[:: max(1, len(mosd_files) // 6)] if args.quick else mosd_files
         if not files:
             print(f"mOSD not found under {DATA / 'mosd'}: skipped (set SQJAX_DATA)", file=sys.stderr)
-
-        def mosd(f):
-            image = sqjax.read_range_image(f).subsample(args.mosd_step)
-            return image, {"table": 1}
-
-        scenes["mosd"] = [(f.stem, lambda f=f: mosd(f)) for f in files]
+        scenes["mosd"] = [(f.stem, lambda f=f: (*mosd_scene(f, args.mosd_step), {"table": 1})) for f in files]
     if "meshes" in suites:
         found = [DATA / m for m in MESHES if (DATA / m).exists()]
         if not found:
             print(f"meshes not found under {DATA}: skipped (set SQJAX_DATA)", file=sys.stderr)
-        scenes["meshes"] = [
-            (f"{p.stem}:{v}", lambda p=p, v=v: (mesh_scene(p, v), {}))
-            for p in found
-            for v in range(1 if args.quick else 3)
-        ]
 
+        def mesh(p, v):
+            image = mesh_scene(p, v)
+            return image, image.labels, {}
+
+        scenes["meshes"] = [
+            (f"{p.stem}:{v}", lambda p=p, v=v: mesh(p, v)) for p in found for v in range(1 if args.quick else 3)
+        ]
     if "clouds" in suites:
-        scenes["clouds"] = cloud_scenes(args, scenes_mosd=sorted((DATA / "mosd").glob("*/*.pcd")), n_mp=n_mp)
+        scenes["clouds"] = cloud_scenes(mosd_files[:: 6 if args.quick else 3], args.mosd_step, (n_mp + 1) // 2)
 
     categories = mosd_categories()
     for suite, items in scenes.items():
         rows, found = [], []
         for name, make in items:
-            image, kw = make()
+            image, truth, kw = make()
             if args.perturb:
                 image = perturbed(image, args.perturb)
-            if suite == "clouds":
-                truth = kw.pop("truth")
-            else:
-                truth = image.labels if suite != "mosd" else mosd_truth(image.labels)
             row = {"scene": name, **run_scene(image, truth, **kw, found=found)}
             if suite == "mosd":
                 row["category"] = categories.get(name, "?")
@@ -352,16 +355,13 @@ def main(argv=None):
         if args.labels:
             Path(args.labels).mkdir(parents=True, exist_ok=True)
             np.savez_compressed(Path(args.labels) / f"{suite}.npz", **{n: f for (n, _), f in zip(items, found)})
-        scored = [r for r in rows if r["truth_parts"] > 0]
-        results[suite] = {"rows": rows, "summary": summarise(scored or rows)}
+        # the clouds suite is scored on the scenes with truth, its single objects by their parts
+        scored = [r for r in rows if not r["scene"].startswith("single:")] or rows
+        results[suite] = {"rows": rows, "summary": summarise(scored)}
         if suite == "clouds":
-            for kind in ("mosd", "multipart"):
-                part = [r for r in rows if r["scene"].startswith(kind + ":")]
-                if part:
-                    results[suite][kind] = summarise(part)
-            results[suite]["single_object_parts"] = {
-                r["scene"].split(":", 1)[1]: r["found_parts"] for r in rows if r["scene"].startswith("single:")
-            }
+            kinds = {k: [r for r in rows if r["scene"].startswith(k + ":")] for k in ("mosd", "multipart", "single")}
+            results[suite].update({k: summarise(kinds[k]) for k in ("mosd", "multipart") if kinds[k]})
+            results[suite]["single_object_parts"] = {r["scene"][7:]: r["found_parts"] for r in kinds["single"]}
         if suite == "mosd":
             results[suite]["step"] = args.mosd_step
             results[suite]["categories"] = {
@@ -370,11 +370,8 @@ def main(argv=None):
         if args.figures and suite != "clouds":
             worst = sorted(rows, key=lambda r: (r["correct"] - r["truth_parts"], r["scene"]))[: args.worst]
             for r in worst:
-                image, kw = dict(items)[r["scene"]]()
-                kw.pop("truth_sq", None), kw.pop("table", None)
-                run_scene(
-                    image, image.labels, figure=Path(args.figures) / f"{suite}_{r['scene'].replace(':', '_')}.png"
-                )
+                image, truth, _ = dict(items)[r["scene"]]()
+                run_scene(image, truth, figure=Path(args.figures) / f"{suite}_{r['scene'].replace(':', '_')}.png")
     results["peak_rss_gib"] = peak_rss_gib()
     print_table(results)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -169,14 +169,11 @@ def cloud_noise(points: np.ndarray, window: int, samples: int = 300) -> float:
     the multi-part clouds. `PART_WINDOWS` measured over the benchmark's clouds suite and Bobkov's
     rooms (benchmarks/RESULTS.md, 2026-12-03): 4 windows 77.6% correct, 8 windows 78.9%, 16 windows
     74.5% (multi-part objects merge), the single-object clouds fewer parts the larger it is."""
-    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
-
     P = np.asarray(points, np.float64)
     small, large = max(window // 2, 8), min(2 * window, P.shape[0])
     if large <= small:
         return float(_patch_residuals(P[None])[0])
-    centres = P[np.unique(np.linspace(0, P.shape[0] - 1, samples).astype(np.int64))]
-    _, nn = cKDTree(P).query(centres, large)
+    nn = knn(P, large, P[np.unique(np.linspace(0, P.shape[0] - 1, samples).astype(np.int64))])
     lo, hi = (float(np.quantile(_patch_residuals(P[nn[:, :k]]), 0.25)) for k in (small, large))
     beta = float(np.clip(np.log2(max(hi, 1e-300) / max(lo, 1e-300)) / np.log2(large / small), 0.0, 1.0))
     return hi * (PART_WINDOWS * window / large) ** beta

@@ -62,9 +62,10 @@ def _union_hypotheses(ws: Workspace, models: Models, pairs: list, keep_fraction:
         # Visibility: the union's model must not fill space the camera saw through (points behind it,
         # or no return at all) much more than its two parts do; a box under a table, whose side face
         # holds the legs, explains both pieces but fills the free space between the legs.
-        seen = lambda th: free_space_violations(ws, th) + void_violations(ws, th)
         parts, pair_of = np.unique(np.array([pairs[k] for k in keep]), return_inverse=True)
-        extra = seen(theta[keep]) - seen(models.theta[parts])[pair_of.reshape(-1, 2)].sum(1)
+        both = np.concatenate([theta[keep], models.theta[parts]])  # one batch of ray tests for all
+        seen = free_space_violations(ws, both) + void_violations(ws, both)
+        extra = seen[: len(keep)] - seen[len(keep) :][pair_of.reshape(-1, 2)].sum(1)
         ok = extra <= (1.0 - keep_fraction) * np.array([r.sum() for r in regions])
         keep, regions, dist = ([x for x, good in zip(a, ok) if good] for a in (keep, regions, dist))
     return {pairs[k]: (theta[k], r, dk) for k, r, dk in zip(keep, regions, dist)}
