@@ -1,7 +1,5 @@
 """`python -m sqjax ...`: the command line of `sqjax.cli`."""
 
-import sys
+from .cli import console
 
-from .cli import main
-
-sys.exit(main())
+console()

@@ -16,6 +16,7 @@ import numpy as np
 
 from . import rotation as so3
 from .cache import persistent_kernel
+from .numerics import to_device
 from .superquadric import Superquadric
 
 NUM_PARAMS = 11
@@ -99,12 +100,12 @@ def _world(theta, centre) -> Superquadric:
 def to_world(theta: np.ndarray, centre: np.ndarray) -> Superquadric:
     """Host theta (M, 11) about `centre` (3,) -> one batched float32 `Superquadric` in the data's frame.
 
-    Rows are padded to a power of two (at least 8) so that few shapes compile; the result has M rows."""
+    Rows are padded to a power of two (at least 32) so that few shapes compile; the result has M rows."""
     from .padding import bucket, pad_rows
 
     M = len(theta)
-    th = jnp.asarray(pad_rows(theta, bucket(M, 8), theta[0]), jnp.float32)
-    sq = _world(th, jnp.asarray(centre, jnp.float32))
+    th = to_device(pad_rows(theta, bucket(M, 32), theta[0]), np.float32)
+    sq = _world(th, to_device(centre, np.float32))
     return jax.tree.map(lambda v: v[:M], jax.tree.map(np.asarray, sq))
 
 
@@ -119,4 +120,4 @@ def volumes(theta: np.ndarray) -> np.ndarray:
     from .padding import bucket, pad_rows
 
     M = len(theta)
-    return np.asarray(_volumes(jnp.asarray(pad_rows(theta, bucket(M, 8), theta[0]), jnp.float32)))[:M]
+    return np.asarray(_volumes(to_device(pad_rows(theta, bucket(M, 32), theta[0]), np.float32)))[:M]

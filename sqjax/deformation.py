@@ -26,10 +26,10 @@ def untaper(x, taper, a3):
     return jnp.concatenate([_safe_div(x[..., 0:1], fx), _safe_div(x[..., 1:2], fy), x[..., 2:3]], -1)
 
 
-def taper_points(x, taper, a3):
-    """Forward tapering of model-frame points (..., 3)."""
+def taper_points(x, taper, a3, xp=jnp):
+    """Forward tapering of model-frame points (..., 3) (`xp=numpy` for host meshes)."""
     kz = x[..., 2:3] / a3
-    return jnp.concatenate(
+    return xp.concatenate(
         [x[..., 0:1] * (taper[..., 0:1] * kz + 1.0), x[..., 1:2] * (taper[..., 1:2] * kz + 1.0), x[..., 2:3]], -1
     )
 
@@ -66,19 +66,20 @@ def unbend(x, bend):
     return jnp.concatenate([X - ca * shift, Y - sa * shift, z], -1)
 
 
-def bend_points(x, bend):
+def bend_points(x, bend, xp=jnp):
     """Forward bending of model-frame points (..., 3) (Solina & Bajcsy), exact for every k >= 0.
 
     With g = k z: the in-plane offset (1/k - r)(1 - cos g) = (1 - k r) k z^2 (1 - cos g) / g^2 and
-    the new z = (1 - k r) z sin(g) / g, through `jnp.sinc` (no threshold on k, no 0 / 0).
+    the new z = (1 - k r) z sin(g) / g, through `sinc` (no threshold on k, no 0 / 0). `xp=numpy` for
+    host meshes.
     """
     k, alpha = bend[..., 0:1], bend[..., 1:2]
-    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+    ca, sa = xp.cos(alpha), xp.sin(alpha)
     r = x[..., 0:1] * ca + x[..., 1:2] * sa
     z = x[..., 2:3]
     g = k * z
     one_m_kr = 1.0 - k * r
-    half = jnp.sinc(g / (2 * jnp.pi))  # sin(g / 2) / (g / 2)
+    half = xp.sinc(g / (2 * xp.pi))  # sin(g / 2) / (g / 2)
     dR = one_m_kr * k * z * z * 0.5 * half * half  # (1 - k r)(1 - cos g) / k
-    Z = one_m_kr * z * jnp.sinc(g / jnp.pi)  # (1 - k r) sin(g) / k
-    return jnp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)
+    Z = one_m_kr * z * xp.sinc(g / xp.pi)  # (1 - k r) sin(g) / k
+    return xp.concatenate([x[..., 0:1] + ca * dR, x[..., 1:2] + sa * dR, Z], -1)

@@ -17,6 +17,7 @@ import numpy as np
 
 from . import rotation as so3
 from .cache import persistent_kernel
+from .numerics import to_device
 from .padding import bucket, pad_rows
 
 # ----------------------------------------------------------------------------------------------------
@@ -172,7 +173,8 @@ def one_view_starts(points: np.ndarray, regions: list, origin: np.ndarray | None
         if origin is not None:  # away from the camera, by the added thickness
             n = V[:, 2] * (1.0 if np.dot(centre[i] - origin, V[:, 2]) >= 0 else -1.0)
             back[i] = n * (h[2] - thin[i, 2])
-    w = np.asarray(_log_rotations(jnp.asarray(pad_rows(R, bucket(K, 32), np.eye(3)))), np.float64)[:K]
+    rotations = to_device(pad_rows(R, bucket(K, 32), np.eye(3)), jax.dtypes.canonicalize_dtype(np.float64))
+    w = np.asarray(_log_rotations(rotations), np.float64)[:K]
     out = [np.concatenate([np.log(np.maximum(thin, 1e-3 * thin.max(1, keepdims=True))), np.ones((K, 2)), w, centre], 1)]
     for e in (1.0, 0.3):
         out.append(np.concatenate([np.log(half), np.full((K, 2), e), w, centre + back], 1))

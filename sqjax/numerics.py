@@ -24,3 +24,20 @@ def eps(name: str, dtype) -> float:
     """The threshold `name` of the table above for `dtype` (float32, else float64)."""
     f32, f64 = _EPSILON[name]
     return f32 if np.dtype(dtype) == np.float32 else f64
+
+
+def to_device(x, dtype):
+    """Host data (array-like) -> a device array of `dtype`, converted by numpy on the host.
+
+    `jnp.asarray(x, dtype)` compiles a small conversion for every new shape (and reads it back from the
+    persistent cache in every later process, ~20 ms each); a command that meets a dozen shapes loses a
+    few tenths of a second to them. Traced values (under jit / grad) go through `jnp.asarray`.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    if isinstance(x, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+        return jnp.asarray(x, dtype)
+    if isinstance(x, jax.Array) and x.dtype == dtype:
+        return x
+    return jax.device_put(np.asarray(x, dtype))

@@ -21,7 +21,7 @@ import numpy as np
 
 from . import rotation as so3
 from .deformation import bend_points, taper_points, unbend, untaper
-from .numerics import eps
+from .numerics import eps, to_device
 
 EPSILON_RANGE = (0.1, 1.9)
 """Range the shape exponents e1, e2 are kept in."""
@@ -105,15 +105,15 @@ class Superquadric(eqx.Module):
         _check_fields(
             size=size, epsilon=epsilon, rotation=rotation, euler=euler, translation=translation, taper=taper, bend=bend
         )
-        size = jnp.asarray(size, dtype)
+        size = to_device(size, dtype)
         batch = size.shape[:-1]
         if rotation is None:
-            rotation = so3.from_euler(jnp.asarray(euler if euler is not None else (0.0, 0.0, 0.0), dtype))
-        f = lambda v, n: jnp.broadcast_to(jnp.asarray(v, dtype), batch + (n,))
+            rotation = so3.from_euler(to_device(euler if euler is not None else (0.0, 0.0, 0.0), dtype))
+        f = lambda v, n: jnp.broadcast_to(to_device(v, dtype), batch + (n,))
         return cls(
             size,
             f(epsilon, 2),
-            jnp.broadcast_to(jnp.asarray(rotation, dtype), batch + (3, 3)),
+            jnp.broadcast_to(to_device(rotation, dtype), batch + (3, 3)),
             f(translation, 3),
             f(taper, 2),
             f(bend, 2),

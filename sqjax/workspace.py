@@ -22,6 +22,7 @@ from . import rotation as so3
 from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
+from .numerics import to_device
 from .padding import call_size, pad_rows, pair_chunk, point_rows, refit_points
 from .solver import fit_padded, fit_padded_sharded
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
@@ -87,8 +88,8 @@ class Workspace:
             dtype,
             centre,
             host,
-            jnp.asarray(pad_rows(host, rows, np.zeros(3)), dtype),
-            jnp.asarray(pad_rows(views, rows, np.zeros(3)), dtype),
+            to_device(pad_rows(host, rows, np.zeros(3)), dtype),
+            to_device(pad_rows(views, rows, np.zeros(3)), dtype),
             noise.scale(dom.points),
         )
 

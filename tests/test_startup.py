@@ -47,6 +47,29 @@ def test_help_is_fast():
     assert wall < 3.0, f"sqjax --help took {wall:.2f} s (target 1 s; 3 s allows for a loaded test machine)"
 
 
+def test_the_program_exits_with_its_status_its_output_and_its_exit_handlers(tmp_path):
+    """`console` (the `sqjax` program) skips the interpreter's teardown, not the exit handlers, the
+    flushing of the output, or the exit status."""
+    marker = tmp_path / "ran"
+    code = (
+        "import atexit, sys\n"
+        f"atexit.register(lambda: open({str(marker)!r}, 'w').write('ran'))\n"
+        "sys.argv = ['sqjax'] + sys.argv[1:]\n"
+        "print('x' * 100000, end='')\n"
+        "from sqjax.cli import console\n"
+        "console()\n"
+    )
+    e = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run(
+        [sys.executable, "-c", code, "evaluate", "missing", "missing"], capture_output=True, text=True, env=e
+    )
+    assert r.returncode == 2 and "missing" in r.stderr, r.stderr
+    assert r.stdout == "x" * 100000
+    assert marker.read_text() == "ran"
+    r = subprocess.run([sys.executable, "-m", "sqjax", "--version"], capture_output=True, text=True, env=e, cwd=ROOT)
+    assert r.returncode == 0 and r.stdout.startswith("sqjax "), r
+
+
 def test_lazy_names_resolve_and_dir_is_complete():
     for name in sqjax.__all__:
         assert getattr(sqjax, name) is not None, name

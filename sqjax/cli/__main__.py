@@ -1,7 +1,5 @@
 """`python -m sqjax.cli ...`: the same as `python -m sqjax ...`."""
 
-import sys
+from . import console
 
-from . import main
-
-sys.exit(main())
+console()
