@@ -161,13 +161,16 @@ def _is_traced(x) -> bool:
 
 
 def _nanmedian(xp, v, axis):
-    if xp is np:
-        with np.errstate(all="ignore"):
-            import warnings
+    """The median along `axis` of the non-NaN values (NaN where there is none).
 
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN problems are caught elsewhere
-                return np.nanmedian(v, axis=axis)
+    On the host by one sort (NaN sorts last) and the middle of each row's valid count: numpy's
+    `nanmedian` goes through masked arrays, 0.5 ms a call, a sixth of a small `fit` (2026-12-03)."""
+    if xp is np:
+        s = np.sort(np.moveaxis(v, axis, -1), -1)
+        n = np.sum(~np.isnan(s), -1, keepdims=True)
+        lo = np.take_along_axis(s, np.maximum(n - 1, 0) // 2, -1)
+        hi = np.take_along_axis(s, n // 2, -1)
+        return np.moveaxis(0.5 * (lo + hi), -1, axis).squeeze(axis)
     return jnp.nanmedian(v, axis=axis)
 
 
@@ -376,5 +379,6 @@ def fit(
     )
     if single:
         res = jax.tree.map(lambda v: v[0], res)
-    # device_put, not jnp.asarray: the latter compiles a small "stage" op for every new shape
-    return jax.tree.map(lambda v: jax.device_put(np.asarray(v)), res) if xp is np else res
+    # one device_put of the whole tree, not jnp.asarray: that compiles a small "stage" op for every
+    # new shape, and a call per leaf costs more than one for all
+    return jax.device_put(jax.tree.map(np.asarray, res)) if xp is np else res
