@@ -305,3 +305,39 @@ def test_bending_gradient_finite_at_zero_curvature():
     for f in (bend_points, unbend):
         g = jax.grad(lambda b, f=f: jnp.sum(f(x, b) ** 2))(jnp.array([0.0, 0.3]))
         assert bool(jnp.all(jnp.isfinite(g)))
+
+
+@pytest.mark.parametrize("size, eps, extra", SHAPES)
+def test_host_world_points_match_the_kernel(size, eps, extra):
+    """`mesh.world_points` (numpy, float64, for meshes of any size) is `to_world_frame` (JAX)."""
+    from sqjax.mesh import world_points
+    from sqjax.superquadric import to_world_frame
+
+    sq = _sq(size, eps, extra)
+    x = np.random.default_rng(1).uniform(-1, 1, (4, 7, 3)) * np.asarray(size)
+    want = np.asarray(to_world_frame(sq, jnp.asarray(x, jnp.float32)), float)
+    np.testing.assert_allclose(world_points(sq, x), want, atol=1e-5)
+
+
+def test_host_data_reaches_the_device_without_a_compiled_conversion():
+    """`numerics.to_device` (and so `Superquadric.create` on host values) converts on the host: a process
+    meeting many shapes compiles (and reloads from the cache) no small conversion kernel per shape."""
+    from sqjax.numerics import to_device
+
+    compiled = []
+
+    def listen(event: str, duration_secs: float, **kwargs: str | int) -> None:
+        if "compile" in event:
+            compiled.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for n in (3, 5, 7, 11):
+            v = to_device(np.arange(n, dtype=np.float64), jnp.float32)
+            assert v.dtype == jnp.float32 and isinstance(v, jax.Array)
+            Superquadric.create(np.full(3, 0.1 * n), (0.5, 1.0), euler=np.zeros(3), translation=np.ones(3))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled == [], compiled
+    traced = jax.jit(lambda s: to_device(s, jnp.float32) * 2)(jnp.arange(3.0))
+    np.testing.assert_array_equal(traced, [0.0, 2.0, 4.0])
