@@ -56,7 +56,9 @@ uniform points in the bounding box: robust `fit` against `robust=False` and scip
 `fit` call per problem over `--loop` different N, compile included, against scipy on the same
 problems), `slabs` (thin boxy slabs seen face-on: fitted / true thickness, cost of the fit against
 the cost of the truth), `deform` (`deform=True` on undeformed views: |taper|, k; on tapered / bent
-truths: parameter errors). Every suite prints its scipy ratio where it has one.
+truths: parameter errors), `clean` (issue 14's own protocol: 200 one-view problems, each with its own N
+drawn log-uniformly from 150..3000, one masked call; median / p10 IoU and gross failures, with and
+without `robust`). Every suite prints its scipy ratio where it has one.
 
 Data: random superquadrics (sizes 0.5-2, exponents 0.2-1.8, random pose), N points of the side facing a
 random viewpoint (one range-sensor view), Gaussian noise of 1% of the mean size: the same problems for
@@ -102,8 +104,8 @@ def _parse(argv):
     ap.add_argument(
         "--suites",
         nargs="+",
-        default=["speed", "outliers", "loop", "slabs", "deform"],
-        choices=["speed", "outliers", "loop", "slabs", "deform"],
+        default=["speed", "outliers", "loop", "slabs", "deform", "clean"],
+        choices=["speed", "outliers", "loop", "slabs", "deform", "clean"],
     )
     ap.add_argument(
         "--residual",
@@ -113,6 +115,7 @@ def _parse(argv):
     )
     ap.add_argument("--outlier-k", type=int, default=200, help="problems per outlier fraction")
     ap.add_argument("--loop", type=int, default=200, help="problems (each with its own N) in the loop suite")
+    ap.add_argument("--clean", type=int, default=200, help="problems (N 150..3000) in the clean suite")
     ap.add_argument(
         "--cache",
         metavar="DIR",
@@ -123,7 +126,7 @@ def _parse(argv):
     args = ap.parse_args(argv)
     if args.quick:
         args.ks, args.ns, args.dtypes = [16], [256, 1024], ["float32"]
-        args.outlier_k, args.loop = 64, 40
+        args.outlier_k, args.loop, args.clean = 64, 40, 40
     return args
 
 
@@ -406,6 +409,43 @@ def suite_loop(args, results):
     )
 
 
+def suite_clean(args, results):
+    """Issue 14's own protocol: `--clean` one-view problems, 1% noise, each with its own N drawn
+    log-uniformly from 150..3000, fitted in one call (padded, masked) with `fit()`'s defaults and with
+    `robust=True`; median and p10 volume IoU, gross failures (IoU < 0.5)."""
+    rng = np.random.default_rng(140)
+    ns = np.exp(rng.uniform(np.log(150), np.log(3000), args.clean)).astype(int)
+    truth, pts = [], np.full((args.clean, int(ns.max()), 3), np.nan)
+    for k, n in enumerate(ns):
+        t, p = problems(int(n), 1, seed=20_000 + k)
+        truth.append(t[0])
+        pts[k, :n] = p[0]
+    for robust in (False, True):
+        t0 = time.perf_counter()
+        out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual))
+        jax.block_until_ready(out)
+        seconds = time.perf_counter() - t0
+        sc = iou(truth, out.superquadric)
+        row = {
+            "suite": "clean",
+            "robust": robust,
+            "problems": args.clean,
+            "n_range": [int(ns.min()), int(ns.max())],
+            "n_median": float(np.median(ns)),
+            "iou_median": float(np.median(sc)),
+            "iou_p10": float(np.percentile(sc, 10)),
+            "gross_failures": float(np.mean(sc < 0.5)),
+            "seconds_with_compile": seconds,
+        }
+        results["suites"].append(row)
+        print(
+            f"clean robust={robust!s:5s}: {args.clean} problems, N {ns.min()}..{ns.max()} (median "
+            f"{np.median(ns):.0f}): IoU median {row['iou_median']:.3f} p10 {row['iou_p10']:.3f} gross "
+            f"{row['gross_failures']:.1%} ({seconds:.1f} s with compile)",
+            flush=True,
+        )
+
+
 SLABS = [
     ((2.0, 1.5, 0.30), (0.5, 0.33)),
     ((2.4, 1.8, 0.35), (0.4, 0.40)),
@@ -542,7 +582,7 @@ def main():
         "scipy": [],
         "suites": [],
     }
-    for name in ("outliers", "loop", "slabs", "deform"):
+    for name in ("outliers", "loop", "slabs", "deform", "clean"):
         if name in args.suites:
             globals()[f"suite_{name}"](args, results)
     kmax = max(args.ks)
