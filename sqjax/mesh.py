@@ -37,7 +37,7 @@ def world_points(sq: Superquadric, x: np.ndarray) -> np.ndarray:
     f = lambda v: np.asarray(v, float)
     x = taper_points(x, f(sq.taper), f(sq.size)[..., 2:3], xp=np)
     x = bend_points(x, f(sq.bend), xp=np)
-    return x @ f(sq.rotation).T + f(sq.translation)
+    return x @ np.swapaxes(f(sq.rotation), -1, -2) + f(sq.translation)
 
 
 def to_trimesh(sq: Superquadric, resolution: int = 48):
