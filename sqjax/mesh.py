@@ -8,8 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .deformation import bend_points, taper_points
-from .superquadric import Superquadric, log_inside_outside, to_model_frame, to_world_frame
+from .superquadric import Superquadric, log_inside_outside, to_model_frame, to_world_frame, world_points
 
 
 def _spow(c, e):
@@ -27,17 +26,8 @@ def surface_grid(sq: Superquadric, resolution: int = 48):
     c[[0, -1]] = 0.0  # exact poles, so the mesh closes
     ce, se = _spow(c, e1), _spow(np.sin(eta), e1)
     x = np.stack([a[0] * ce * _spow(np.cos(om), e2), a[1] * ce * _spow(np.sin(om), e2), a[2] * se], -1)
-    return world_points(sq, x)
-
-
-def world_points(sq: Superquadric, x: np.ndarray) -> np.ndarray:
-    """`to_world_frame` in float64 numpy: undeformed model-frame points (..., 3) -> world (..., 3).
-
-    Host meshes come in many sizes, and each would compile (and reload from the cache) a kernel."""
-    f = lambda v: np.asarray(v, float)
-    x = taper_points(x, f(sq.taper), f(sq.size)[..., 2:3], xp=np)
-    x = bend_points(x, f(sq.bend), xp=np)
-    return x @ np.swapaxes(f(sq.rotation), -1, -2) + f(sq.translation)
+    # in float64 numpy: meshes come in many sizes, and each would compile (and reload) a kernel
+    return world_points(jax.tree.map(lambda v: np.asarray(v, float), sq), x, xp=np)
 
 
 def to_trimesh(sq: Superquadric, resolution: int = 48):

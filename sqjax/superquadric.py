@@ -207,9 +207,14 @@ def to_model_frame(sq: Superquadric, points):
 @jax.jit
 def to_world_frame(sq: Superquadric, x):
     """Undeformed model-frame points (..., 3) -> world points: taper, bend, R x + t."""
-    x = taper_points(x, sq.taper, sq.size[..., 2:3])
-    x = bend_points(x, sq.bend)
-    return x @ jnp.swapaxes(sq.rotation, -1, -2) + sq.translation
+    return world_points(sq, x)
+
+
+def world_points(sq: Superquadric, x, xp=jnp):
+    """`to_world_frame` unjitted; with `xp=numpy` (and numpy fields) on the host, for meshes of any size."""
+    x = taper_points(x, sq.taper, sq.size[..., 2:3], xp=xp)
+    x = bend_points(x, sq.bend, xp=xp)
+    return x @ xp.swapaxes(sq.rotation, -1, -2) + sq.translation
 
 
 # ----------------------------------------------------------------------------------------------------

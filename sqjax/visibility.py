@@ -42,13 +42,14 @@ def free_space_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndar
     c = theta[:, TRANSLATION]
     radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, LOG_SIZE]), -1))
     pairs_m, pairs_p = [], []
-    for i in range(M):
-        w = P - c[i]
-        t = np.einsum("pj,pj->p", w, v)  # > 0: the model's centre is in front of p
-        perp2 = np.einsum("pj,pj->p", w, w) - t * t
-        cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > ws.tau))
-        pairs_m.append(np.full(cand.size, i))
-        pairs_p.append(cand)
+    for rows in _model_blocks(M, len(P)):
+        w = P - c[rows, None]  # (m, P, 3)
+        t = np.einsum("mpj,pj->mp", w, v)  # > 0: the model's centre is in front of p
+        perp2 = np.einsum("mpj,mpj->mp", w, w) - t * t
+        r = radius[rows, None]
+        m, p = np.nonzero((perp2 < r * r) & (t + r > ws.tau))
+        pairs_m.append(m + rows.start)
+        pairs_p.append(p)
     model, point = np.concatenate(pairs_m), np.concatenate(pairs_p)
     if model.size == 0:
         return out
@@ -115,17 +116,29 @@ def void_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
     c = theta[:, TRANSLATION]
     radius = np.sqrt(np.sum(np.exp(2.0 * theta[:, LOG_SIZE]), -1))
     pairs_m, ends, dirs = [], [], []
-    for i in range(M):
-        t = (c[i] - o) @ v.T  # along each ray to the model's centre
-        perp2 = np.sum((c[i] - o) ** 2) - t * t
-        cand = np.flatnonzero((perp2 < radius[i] ** 2) & (t + radius[i] > 0))
-        pairs_m.append(np.full(cand.size, i))
-        ends.append(o + (t[cand] + radius[i])[:, None] * v[cand])  # behind the sphere, on the ray
-        dirs.append(v[cand])
+    for rows in _model_blocks(M, len(v)):
+        d = c[rows] - o  # (m, 3)
+        t = np.einsum("mj,qj->mq", d, v)  # along each ray to the model's centre
+        perp2 = np.einsum("mj,mj->m", d, d)[:, None] - t * t
+        r = radius[rows, None]
+        m, q = np.nonzero((perp2 < r * r) & (t + r > 0))
+        pairs_m.append(m + rows.start)
+        ends.append(o + (t[m, q] + r[m, 0])[:, None] * v[q])  # behind the sphere, on the ray
+        dirs.append(v[q])
     model, end, ray = np.concatenate(pairs_m), np.concatenate(ends), np.concatenate(dirs)
     if model.size == 0:
         return out
     return _ray_hits(ws, theta, model, end, ray, np.zeros(model.size), box)
+
+
+_BLOCK = 1 << 21
+"""(model, point) entries per block of the bounding-sphere test (a few tens of MB of float64)."""
+
+
+def _model_blocks(M: int, per_model: int):
+    """Slices of the M models, each block of them tested against all `per_model` rays at once."""
+    n = max(1, _BLOCK // max(per_model, 1))
+    return (slice(s, min(s + n, M)) for s in range(0, M, n))
 
 
 _RAY_SAMPLES = 16

@@ -309,14 +309,14 @@ def test_bending_gradient_finite_at_zero_curvature():
 
 @pytest.mark.parametrize("size, eps, extra", SHAPES)
 def test_host_world_points_match_the_kernel(size, eps, extra):
-    """`mesh.world_points` (numpy, float64, for meshes of any size) is `to_world_frame` (JAX)."""
-    from sqjax.mesh import world_points
-    from sqjax.superquadric import to_world_frame
+    """The host transform of meshes (`world_points` with numpy, float64, any size) is `to_world_frame`."""
+    from sqjax.superquadric import to_world_frame, world_points
 
     sq = _sq(size, eps, extra)
     x = np.random.default_rng(1).uniform(-1, 1, (4, 7, 3)) * np.asarray(size)
     want = np.asarray(to_world_frame(sq, jnp.asarray(x, jnp.float32)), float)
-    np.testing.assert_allclose(world_points(sq, x), want, atol=1e-5)
+    host = jax.tree.map(lambda v: np.asarray(v, float), sq)
+    np.testing.assert_allclose(world_points(host, x, xp=np), want, atol=1e-5)
 
 
 def test_host_data_reaches_the_device_without_a_compiled_conversion():
