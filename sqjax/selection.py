@@ -36,26 +36,26 @@ def build_q(regions, sq_dist, num_params, weights: SelectionWeights) -> np.ndarr
     distances d_i^2, either (M, P) (used only inside R_i) or a list of M arrays, the i-th holding
     d_i^2 of R_i's points in index order (`np.flatnonzero(regions[i])`); `num_params` (M,) N_i.
     """
+    from scipy import sparse  # here: its import is paid by the first selection, not by `sqjax --help`
+
     regions = np.asarray(regions, bool)
-    M = regions.shape[0]
+    M, P = regions.shape
     if isinstance(sq_dist, np.ndarray) and sq_dist.ndim == 2:
         sq_dist = [sq_dist[i, regions[i]] for i in range(M)]
-    n = regions.sum(1).astype(np.float32)
-    xi = np.array([np.sum(d, dtype=np.float64) for d in sq_dist], np.float32).reshape(M)
-    shared = regions.sum(0) >= 2  # only points in two or more regions enter the overlaps
-    B = regions[:, shared].astype(np.float32)
-    column = np.full(regions.shape[1], -1)
-    column[shared] = np.arange(B.shape[1])
-    D = np.zeros(B.shape, np.float32)
-    for i, d in enumerate(sq_dist):
-        c = column[regions[i]]
-        D[i, c[c >= 0]] = np.asarray(d)[c >= 0]
-    overlap = B @ B.T  # |R_i ∩ R_j| (its diagonal is not used)
-    s = D @ B.T  # s_ij = sum over R_i ∩ R_j of d_i^2
+    # Regions are sparse (a few hundred of P points each): the overlaps as sparse products cost the
+    # sum over points of (models covering it)^2, not M^2 P (5.6x faster than dense on mOSD scenes).
+    model, point = np.nonzero(regions)  # row-major: each model's points in index order, as sq_dist
+    d = np.concatenate([np.asarray(x, np.float64).ravel() for x in sq_dist]) if M else np.zeros(0)
+    n = np.bincount(model, minlength=M).astype(np.float64)
+    xi = np.bincount(model, d, minlength=M)
+    B = sparse.csr_matrix((np.ones(model.size), (model, point)), shape=(M, P))
+    D = sparse.csr_matrix((d, (model, point)), shape=(M, P))
+    overlap = (B @ B.T).toarray()  # |R_i ∩ R_j| (its diagonal is not used)
+    s = (D @ B.T).toarray()  # s_ij = sum over R_i ∩ R_j of d_i^2
     xi_ij = np.maximum(s, s.T)  # eq. 4
     Q = (-weights.k1 * overlap + weights.k2 * xi_ij) / 2.0  # eq. 3
-    np.fill_diagonal(Q, weights.k1 * n - weights.k2 * xi - weights.k3 * np.asarray(num_params, np.float32))  # eq. 2
-    return Q.astype(np.float64)
+    np.fill_diagonal(Q, weights.k1 * n - weights.k2 * xi - weights.k3 * np.asarray(num_params, np.float64))  # eq. 2
+    return Q
 
 
 def objective(Q: np.ndarray, m: np.ndarray) -> float:
