@@ -144,30 +144,63 @@ def label_full(image: RangeImage, step: int, ws: Workspace, models: Models, coar
     r, c = np.clip(np.rint(r / step).astype(np.int64), 0, h - 1), np.clip(np.rint(c / step).astype(np.int64), 0, w - 1)
     padded = np.pad(coarse, 1)
     cand = np.stack([padded[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], 1)  # (Pf, 9)
-    cand = np.unique(np.arange(P.shape[0], dtype=np.int64)[:, None] * (len(models.theta) + 1) + cand)
-    point, label = np.divmod(cand, len(models.theta) + 1)
+    explained = np.zeros(h * w, bool)
+    explained[ws.dom.index[models.regions.any(0)]] = True
+    own = coarse[r, c]
+    labels, owns = _label_by_candidates(full, ws, models, cand, np.where(explained[r * w + c], 0, own))
+    return labels.reshape(H, W), owns, full
+
+
+def label_cloud(cloud: np.ndarray, ws: Workspace, models: Models, coarse: np.ndarray):
+    """Label every valid row of the (n_rows, 3) `cloud` with the final models fitted on a subset of its
+    rows (the workspace's points; their labels `coarse` (n_rows,), 0 elsewhere): as `label_full`, with
+    the `_CLOUD_CANDIDATES` nearest working points in place of the 3 x 3 block of coarse pixels.
+    Returns the (n_rows,) labels (label i + 1 = model owns[i]), the models that own labels, and the
+    runner of the full cloud's points."""
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
+
+    rows = np.flatnonzero(np.isfinite(cloud).all(1))
+    P = np.asarray(cloud[rows], np.float64)
+    dom = Domain(P, np.zeros((P.shape[0], 0), np.int64), rows, (len(cloud),))
+    full = Workspace.create(dom, ws.opts, ws.noise, ws.dtype, centre=ws.centre)
+    k = min(_CLOUD_CANDIDATES, ws.P)
+    _, near = cKDTree(ws.dom.points).query(P, k)
+    near = near.reshape(P.shape[0], k)
+    cand = coarse[ws.dom.index[near]]  # (Pf, k) labels of the nearest working points
+    explained = models.regions.any(0)
+    fallback = np.where(explained[near[:, 0]], 0, cand[:, 0])
+    return (*_label_by_candidates(full, ws, models, cand, fallback), full)
+
+
+_CLOUD_CANDIDATES = 8
+"""Working points whose labels a full cloud's point may take (`label_cloud`): the adjacency's k."""
+
+
+def _label_by_candidates(full: Workspace, ws: Workspace, models: Models, cand: np.ndarray, fallback: np.ndarray):
+    """Labels of `full`'s points from their candidate labels cand (P, C) (0 = none, i + 1 = model i):
+    the nearest candidate model that explains the point (eq. 10 within tau; a face turned away from the
+    camera pays tau, as in `label_image`), else (with `propagate`) `fallback` (P,), the label the
+    working labels propagated to where no model explains. -> flat labels over the domain's shape
+    (label i + 1 = model owns[i]) and owns."""
+    M = len(models.theta)
+    cand = np.unique(np.arange(full.P, dtype=np.int64)[:, None] * (M + 1) + cand)
+    point, label = np.divmod(cand, M + 1)
     point, model = point[label > 0], label[label > 0] - 1
     d, _, away = full.distances(models.theta, model, point)
     inl = d < ws.tau
     score = np.where(inl, d + np.where(away, ws.tau, 0.0), np.inf)
-    best = np.full(P.shape[0], np.inf)
+    best = np.full(full.P, np.inf)
     np.minimum.at(best, point, score)
     win = inl & (score == best[point])
-    owner = np.zeros(P.shape[0], np.int32)
+    owner = np.zeros(full.P, np.int32)
     owner[point[win]] = model[win] + 1  # ties: the later model (any one of them)
     if ws.opts.extras.propagate:
-        # a pixel no model explains takes its coarse pixel's label where that one was propagated
-        # (`propagate`: labelled although no model explains it)
-        explained = np.zeros(h * w, bool)
-        explained[ws.dom.index[models.regions.any(0)]] = True
-        own = coarse[r, c]
-        take = (owner == 0) & (own > 0) & ~explained[r * w + c]
-        owner[take] = own[take]
-    count = np.bincount(owner, minlength=len(models.theta) + 1)[1:]
+        owner = np.where(owner == 0, fallback, owner).astype(np.int32)
+    count = np.bincount(owner, minlength=M + 1)[1:]
     owns, relabel = owners(count)
-    labels = np.zeros(H * W, np.int32)
-    labels[flat] = relabel[owner]
-    return labels.reshape(H, W), owns, full
+    labels = np.zeros(int(np.prod(full.dom.shape)), np.int32)
+    labels[full.dom.index] = relabel[owner]
+    return labels, owns
 
 
 def parts(ws: Workspace, theta: np.ndarray, labels: np.ndarray) -> list:

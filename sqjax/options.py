@@ -258,6 +258,9 @@ class ExtraOptions:
       of the input is labelled by the final models (the paper subsampled its dense images). None =
       the step that brings the image nearest to `segmentation.WORKING_PIXELS` (160 x 120, the
       resolution every default here was measured at: 640 x 480 -> 4); 1 = the slow exact path.
+      Point clouds likewise: segmented on one in `subsample` of their points (a fixed random choice,
+      `segmentation.working_subset`), every input point then labelled; None = nearest to
+      `segmentation.WORKING_POINTS` (as many points as the working image has pixels).
     """
 
     merge: bool = True

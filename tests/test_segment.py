@@ -311,6 +311,33 @@ def test_cloud_labels_stay_aligned_with_the_input_rows():
         assert np.all(keep[part.region]) and part.num_points == np.sum(seg.labels == i + 1)
 
 
+def test_large_clouds_are_segmented_on_a_working_subset_and_labelled_in_full(monkeypatch):
+    """A cloud above the working budget is segmented on one in `step` of its points, with the noise
+    measured on all of them, and every input row is labelled by the final models: the same parts as
+    the exact path, labels aligned with the rows (NaN rows 0), parts that own their labels."""
+    import sqjax.segmentation as S
+    from sqjax.domain import cloud_noise
+
+    a = sqjax.Superquadric.create([1, 1, 1])
+    b = sqjax.Superquadric.create([1, 0.5, 0.7], [0.3, 0.3], translation=[4, 0, 0])
+    pts = np.concatenate([sample_surface(a, 1500, seed=1, noise=0.005), sample_surface(b, 1500, seed=2, noise=0.005)])
+    pts[::11] = np.nan
+    keep = np.isfinite(pts).all(1)
+    exact = segment(pts)
+    monkeypatch.setattr(S, "WORKING_POINTS", 900)
+    seg = segment(pts)
+    assert exact.stats["subsample"] == 1 and seg.stats["subsample"] == 3
+    assert seg.noise == pytest.approx(cloud_noise(pts[keep], 48))
+    assert seg.labels.shape == (3000,) and np.all(seg.labels[~keep] == 0)
+    assert len(seg.parts) == len(exact.parts) == 2
+    la, lb = np.bincount(seg.labels[:1500]).argmax(), np.bincount(seg.labels[1500:]).argmax()
+    assert la != lb and (seg.labels[:1500][keep[:1500]] == la).mean() > 0.95
+    assert (seg.labels[1500:][keep[1500:]] == lb).mean() > 0.95
+    for i, part in enumerate(seg.parts):
+        assert np.all(keep[part.region]) and part.num_points == np.sum(seg.labels == i + 1) > 0
+    assert segment(pts, subsample=1).stats["subsample"] == 1  # the exact path on request
+
+
 def test_merge_candidates_grow_linearly_with_the_models():
     """A scene of many selected pieces must not cost a union fit per pair (28k on a 239-piece plane)."""
     from sqjax.postprocess import MERGE_NEIGHBOURS, merge_candidates

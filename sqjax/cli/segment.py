@@ -77,7 +77,8 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         metavar="STEP",
         help="range images: segment at every STEP-th row and column and label every input pixel "
         "with the final models (default: the step that brings the image near 160 x 120; 1 = the "
-        "slow exact path); clouds: use every STEP-th point (default 1)",
+        "slow exact path); clouds: segment on one in STEP of the points and label every input point "
+        "(default: the step that brings the cloud near 19,200 points; 1 = every point)",
     )
     s.add_argument(
         "--noise",
@@ -128,10 +129,8 @@ def _segment_file(args, path, options, out) -> int:
         intrinsics=args.intrinsics,
     )
     input_shape = data.shape if isinstance(data, RangeImage) else (len(data),)
-    if isinstance(data, RangeImage):  # segmented at a working resolution, labelled at the input's
-        options = options.replace(subsample=args.subsample)
-    elif args.subsample is not None and args.subsample > 1:
-        data = data[:: args.subsample]
+    # segmented at a working resolution (clouds: on a working subset of the points), labelled at the input's
+    options = options.replace(subsample=args.subsample)
     camera_source = (
         "--intrinsics"
         if args.intrinsics is not None
@@ -142,7 +141,7 @@ def _segment_file(args, path, options, out) -> int:
         else ("file" if kind == "range_image" else None)
     )
     settings = {
-        "subsample": 1 if kind == "range_image" else (args.subsample or 1),
+        "subsample": 1,  # the labels are the input's size
         "depth_scale": args.depth_scale,
         "depth_scale_convention": "stored units per metre (divides)",
         "noise": args.noise,
