@@ -106,7 +106,7 @@ def working_subset(cloud: np.ndarray, step: int | None = None) -> tuple[np.ndarr
     return work, step
 
 
-def _prepare(data, opts: SegmentOptions, k: int) -> tuple[Domain, Noise]:
+def _prepare(data, opts: SegmentOptions, k: int, cloud_sigma: float | None = None) -> tuple[Domain, Noise]:
     """The domain of `data` with its seed windows, and the noise (from the options or the data)."""
     sensor, seeds = opts.sensor, opts.seeds
     if isinstance(data, RangeImage):
@@ -139,13 +139,18 @@ def _prepare(data, opts: SegmentOptions, k: int) -> tuple[Domain, Noise]:
         raise ValueError(f"segment: {pts.shape[0]} valid points; at least {seeds.min_seed_points} are needed")
     nb = knn(pts, k)
     window = _cloud_window(opts)
-    sigma = sensor.noise if sensor.noise is not None else max(cloud_noise(pts, window), 1e-12)
+    if sensor.noise is not None:
+        sigma = sensor.noise
+    else:
+        sigma = cloud_sigma if cloud_sigma is not None else max(cloud_noise(pts, window), 1e-12)
     dom = cloud_domain(pts, rows, n_rows, nb)
     dom = dataclasses.replace(dom, seeds=cloud_seeds(dom, window, seeds.min_seed_points), seed_size=window)
     return dom, Noise(sigma, sensor.threshold if sensor.threshold is not None else sensor.threshold_factor * sigma)
 
 
-def workspace(data, options: SegmentOptions | None = None, *, k: int = 8) -> Workspace:
+def workspace(
+    data, options: SegmentOptions | None = None, *, k: int = 8, cloud_sigma: float | None = None
+) -> Workspace:
     """The workspace `segment` starts from, for the (working-resolution) range image or (P, 3) cloud
     `data`: its domain with the seed windows, the noise from the options or the data (before the seeds
     adapt it), the points on the device, and the options with `rings` resolved (4 per 160 pixels of
@@ -154,7 +159,7 @@ def workspace(data, options: SegmentOptions | None = None, *, k: int = 8) -> Wor
     if opts.growth.rings is None:
         size = data.shape[0] * data.shape[1] if isinstance(data, RangeImage) else WORKING_PIXELS
         opts = opts.replace(rings=max(1, round(4 * np.sqrt(size / WORKING_PIXELS))))
-    dom, noise = _prepare(data, opts, k)
+    dom, noise = _prepare(data, opts, k, cloud_sigma)
     return Workspace.create(dom, opts, noise)
 
 
@@ -187,7 +192,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         raise TypeError(f"segment: pass options= or keyword options, not both (got {sorted(kw)})")
     opts = options if options is not None else SegmentOptions.create(**kw)
     clock = Clock()
-    full, step = None, 1
+    full, step, cloud_sigma = None, 1, None
     if isinstance(data, RangeImage):
         step = opts.extras.subsample or working_step(data.shape)
         if step > 1:
@@ -199,8 +204,8 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             full = cloud
             if opts.sensor.noise is None:  # the sensor's noise, measured at its own density
                 valid = cloud[np.isfinite(cloud).all(1)]
-                opts = opts.replace(noise=max(cloud_noise(valid, _cloud_window(opts)), 1e-12))
-    ws = workspace(data, opts, k=k)
+                cloud_sigma = max(cloud_noise(valid, _cloud_window(opts)), 1e-12)
+    ws = workspace(data, opts, k=k, cloud_sigma=cloud_sigma)
     opts, dom = ws.opts, ws.dom
     models, ws = seed(ws)
     weights = opts.selection.weights or SelectionWeights.for_threshold(ws.tau)
