@@ -114,6 +114,45 @@ def _folder() -> Path | None:
     return folder
 
 
+_MAP_SHARE = 0.75
+"""Share of the process's memory-map limit (`vm.max_map_count`) at which compiled kernels are let go."""
+_SEEN: set = set()
+"""Kernel signatures called in this process since the last release (a new one may compile or load)."""
+
+
+def _map_count() -> tuple[int, int] | None:
+    """(memory maps of this process, the kernel's limit on them), or None where /proc does not tell."""
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f), limit
+    except (OSError, ValueError):
+        return None
+
+
+def release_if_crowded() -> bool:
+    """Let go of every compiled kernel of the process (JAX's in-memory caches and the loaded modules)
+    when its memory maps near the limit, and say whether it did.
+
+    Each compiled CPU kernel maps about 1,000 regions of memory (the deformable fit's 2,500: one per
+    JIT-linked section), never released while the kernel is cached, and Linux allows a process
+    `vm.max_map_count` (65,530 by default). A notebook that fits batches of many sizes would reach it
+    after 25-60 kernels, and XLA then aborts the process ("LLVM ERROR: Unable to allocate section
+    memory"). Released kernels come back from the compilation cache when they are called again."""
+    count = _map_count()
+    if count is None or count[0] < _MAP_SHARE * count[1]:
+        return False
+    import gc
+
+    import jax
+
+    _LOADED.clear()
+    _SEEN.clear()
+    jax.clear_caches()
+    gc.collect()
+    return True
+
+
 def _is_array(x) -> bool:
     import jax
     import numpy as np
@@ -134,12 +173,10 @@ def persistent_kernel(fn):
 
     @functools.wraps(fn)
     def call(*args):
-        folder = _folder()
-        if folder is None:
-            return fn(*args)
         leaves, tree = jax.tree.flatten(args)
         if any(isinstance(v, jax.core.Tracer) for v in leaves):  # pyright: ignore[reportAttributeAccessIssue]
             return fn(*args)
+        folder = _folder()
         dynamic = [i for i, v in enumerate(leaves) if _is_array(v)]
         inputs = [leaves[i] for i in dynamic]
         x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64  # changes what constants trace to
@@ -150,6 +187,11 @@ def persistent_kernel(fn):
             [repr(v) if i not in dynamic else (v.shape, str(v.dtype)) for i, v in enumerate(leaves)],
         )
         key = hashlib.sha256(repr(spec).encode()).hexdigest()[:32]
+        if key not in _SEEN:  # a kernel new to the process (or released) compiles or loads: room for it
+            release_if_crowded()
+            _SEEN.add(key)
+        if folder is None:
+            return fn(*args)
         if key not in _LOADED:
             _LOADED[key] = _load(folder / f"{key}.jaxexport") or _export(
                 fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport"

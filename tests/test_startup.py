@@ -153,6 +153,29 @@ def test_a_kept_kernel_gives_the_traced_kernels_results_without_tracing(kernel_d
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="memory maps are counted through Linux's /proc")
+def test_kernels_are_let_go_before_the_memory_maps_run_out(kernel_dir, monkeypatch):
+    """Each compiled CPU kernel holds about a thousand memory maps; when a process nears its limit,
+    a kernel new to it first releases the compiled ones (maps given back), and a released kernel
+    comes back with the same results."""
+    from sqjax import cache
+
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(1, 150, 3)) * (0.5, 0.3, 0.2)
+    first = sqjax.fit(pts)
+    held = cache._map_count()
+    assert held is not None and not cache.release_if_crowded()  # far below the limit: nothing goes
+    monkeypatch.setattr(cache, "_map_count", lambda: (held[1], held[1]))  # as if at the limit
+    second = sqjax.fit(np.concatenate([pts] * 5))  # K = 5 (a batch of 8): a kernel new to the process
+    monkeypatch.undo()
+    after = cache._map_count()
+    # the first kernel's maps were given back before the second's were taken (each takes ~1,000)
+    assert after is not None and after[0] < held[0] + 500 and len(cache._LOADED) == 1
+    assert np.isfinite(np.asarray(second.cost)).all()
+    # the released K = 1 kernel comes back from the folder, with the same results bit for bit
+    assert all(np.array_equal(a, b) for a, b in zip(jax_leaves(first), jax_leaves(sqjax.fit(pts))))
+
+
 def jax_leaves(tree):
     import jax
 
