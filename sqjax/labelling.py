@@ -2,7 +2,8 @@
 
 Each explained pixel goes to its nearest final model (`label_image`); with `ExtraOptions.propagate` the
 surface the models leave unexplained is labelled too (`propagate`). An image segmented at a working
-resolution is labelled at its own by the final models (`label_full`). Every part owns labelled
+resolution is labelled at its own by the final models (`label_full`), and a cloud segmented on a
+working subset of its points is labelled in full likewise (`label_cloud`). Every part owns labelled
 pixels: label i + 1 is `parts[i]`.
 """
 
