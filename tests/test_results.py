@@ -201,3 +201,28 @@ def test_atomic_files_get_the_usual_permissions(tmp_path):
     finally:
         os.umask(mask)
     assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o644
+
+
+def test_cloud_figure_panels_keep_to_the_data_when_a_model_is_swollen():
+    """3-D axes do not clip: a growth model 100x the data's size must not shrink the data to a dot.
+    The cloud panels span the data's box (with a fifth around it) and leave out what reaches beyond."""
+    from types import SimpleNamespace
+
+    from matplotlib.figure import Figure
+
+    from sqjax.plot import draw_superquadrics, figure_sequence
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (400, 3)) + (0, 0, 5)
+    small = Superquadric.create([0.5, 0.5, 0.5], translation=[0, 0, 5])
+    huge = Superquadric.create([100.0, 0.1, 0.1], translation=[0, 0, 5])
+    box = np.array([[-2.0, 2.0, -2.0], [2.0, 8.0, 2.0]])  # the plotted frame: x, depth, up
+    ax = Figure().add_subplot(projection="3d")
+    kept = draw_superquadrics(ax, [huge, small], clip=box)
+    assert len(kept) and np.all((kept >= box[0]) & (kept <= box[1]))  # the small model, whole
+    seg = SimpleNamespace(
+        labels=np.ones(400, np.int32), parts=[SimpleNamespace(superquadric=small)], history=[[huge, small]] * 3
+    )
+    fig = figure_sequence(pts, seg)
+    for ax in fig.axes[1:4]:  # the model panels
+        assert np.ptp(ax.get_xlim()) < 4.0, ax.get_xlim()
