@@ -22,7 +22,7 @@ from . import parallel
 from . import rotation as so3
 from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
-from .padding import pair_chunk
+from .padding import pair_calls
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 
 if TYPE_CHECKING:
@@ -83,11 +83,10 @@ def ray_blocked(ws: Workspace, theta, model, ends, rays, margin, box: bool = Fal
 
 def _ray_kernel(ws: Workspace, kernel, theta, model, ends, rays, per_pair) -> np.ndarray:
     """`kernel(theta rows, ends, rays, index, per_pair[, limit])` over the pairs in fixed-size chunks
-    (`padding.pair_chunk`); the box-chord kernels also get `limit`, the distance back to the camera."""
+    (`padding.pair_calls`); the box-chord kernels also get `limit`, the distance back to the camera."""
     theta_d = np.asarray(theta, np.dtype(ws.dtype))
-    n = pair_chunk(model.size)
     hit = np.zeros(model.size, bool)
-    for s in range(0, model.size, n):
+    for s, n in pair_calls(model.size):
         m = min(n, model.size - s)
         mi, pts, ray, val = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
         mi[:m], pts[:m], ray[:m], val[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], per_pair[s : s + m]

@@ -23,7 +23,7 @@ from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
 from .numerics import to_device
-from .padding import call_size, pad_rows, pair_chunk, point_rows, refit_points
+from .padding import call_size, pad_rows, pair_calls, point_rows, refit_points
 from .solver import fit_padded, fit_padded_sharded
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 from .visibility import seen_through
@@ -119,7 +119,7 @@ class Workspace:
         (`visibility.seen_through`, tested where the surface faces away) is at distance inf: no model
         explains what it would hide.
 
-        Only the pairs asked for are computed, in fixed chunks (`padding.pair_chunk`), a few queued
+        Only the pairs asked for are computed, in calls of a few fixed sizes (`padding.pair_calls`), a few queued
         ahead of the one read back. Each pair gets its model's row of theta, gathered here, so the
         kernel compiles once per chunk size whatever the number of models.
         """
@@ -130,20 +130,19 @@ class Workspace:
         theta = np.asarray(theta, np.dtype(self.dtype))
         host = np.dtype(self.dtype)  # numpy inputs: the kernel call transfers them (no eager device ops)
         args = (host.type(self.opts.growth.enlarge), host.type(self.noise.margin))
-        n = pair_chunk(E)
         split = (True, False, False, True, False, False)  # the pairs' rows and indices; the points whole
-        kernel = parallel.sharded_kernel(_pair_distances, split) if parallel.splits(n) else _pair_distances
 
-        def read(s, out):
-            m = min(n, E - s)
+        def read(s, m, out):
             for dst, src in zip((d, inside, away), out):
                 dst[s : s + m] = np.asarray(src)[:m]
 
         pending = []
-        for s in range(0, E, n):
+        for s, n in pair_calls(E):
+            kernel = parallel.sharded_kernel(_pair_distances, split) if parallel.splits(n) else _pair_distances
+            m = min(n, E - s)
             mi, pi = np.zeros(n, np.int64), np.zeros(n, np.int32)
-            mi[: min(n, E - s)], pi[: min(n, E - s)] = model[s : s + n], point[s : s + n]
-            pending.append((s, kernel(theta[mi], self.points, self.views, pi, *args)))
+            mi[:m], pi[:m] = model[s : s + m], point[s : s + m]
+            pending.append((s, m, kernel(theta[mi], self.points, self.views, pi, *args)))
             if len(pending) > _QUEUE:
                 read(*pending.pop(0))
         for item in pending:

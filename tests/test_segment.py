@@ -7,6 +7,7 @@ import sqjax
 from sqjax import PinholeCamera, RangeImage, Superquadric, hoover, segment
 from sqjax.evaluate import volume_iou
 from sqjax.mesh import sample_surface
+from sqjax.padding import PAIR_SIZES, pair_calls
 from sqjax.scenes import paper_scene, random_scene
 
 from helpers import mosd_image
@@ -512,6 +513,21 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
         assert np.all(seg.labels.ravel()[p.region] == i + 1)
 
 
+def test_pair_calls_cover_every_pair_once_with_little_padding():
+    """The pair kernels' calls (`padding.pair_calls`) cover pairs 0..E-1 once, in order, each call of a
+    compiled size; at most half of a call is padding unless it is the smallest size, and a large E is
+    cut into full calls of the largest."""
+    for E in (1, 1000, 1024, 1025, 3000, 5000, 16385, 40000, 100000, 250001):
+        calls = list(pair_calls(E))
+        starts = [s for s, _ in calls]
+        assert starts == list(np.cumsum([0] + [n for _, n in calls[:-1]])), (E, calls)
+        assert all(n in PAIR_SIZES for _, n in calls) and calls[-1][0] + calls[-1][1] >= E > calls[-1][0]
+        for s, n in calls:
+            assert n == PAIR_SIZES[0] or 2 * min(n, E - s) >= n, (E, calls)
+    assert [n for _, n in pair_calls(5000)] == [4096, 1024]
+    assert [n for _, n in pair_calls(100000)][:3] == [PAIR_SIZES[-1]] * 3
+
+
 def test_each_segmentation_kernel_compiles_once_per_padded_shape():
     """Every jitted kernel that segmentation calls is fed padded shapes (`sqjax.padding`): over three
     scenes, two of one size and one of another, each holds no more compiled variants than its padding
@@ -525,9 +541,9 @@ def test_each_segmentation_kernel_compiles_once_per_padded_shape():
 
     kernels = {  # kernel: most variants over the three scenes
         "fit": (solver.fit_padded, 4),  # N in {128, max_points} x (warm start, multistart)
-        "pair distances": (workspace._pair_distances, 4 * 2),  # 4 chunk sizes x 2 point-row sizes
-        "free space": (visibility._free_space, 4 * 2),
-        "free space (box)": (visibility._free_space_box, 4 * 2),
+        "pair distances": (workspace._pair_distances, len(PAIR_SIZES) * 2),  # call sizes x 2 point-row sizes
+        "free space": (visibility._free_space, len(PAIR_SIZES) * 2),
+        "free space (box)": (visibility._free_space_box, len(PAIR_SIZES) * 2),
         "models to the world": (chart._world, 5),  # powers of two >= 8 up to the hypotheses of a scene
         "volumes": (chart._volumes, 5),
         "starts' rotations": (initial._log_rotations, 6),  # powers of two >= 32 up to the seed count
