@@ -36,18 +36,29 @@ def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:
     return np.concatenate([a, np.repeat(np.asarray(fill)[None], n - a.shape[0], 0)]) if n > a.shape[0] else a
 
 
-def call_size(K: int, N: int) -> int:
-    """Problems per call of the fit kernel for K problems of N (padded) points, for callers whose K moves
-    from call to call (segmentation's refits), so that each (N, options) compiles few kernels.
+def fit_call_sizes(N: int) -> tuple[int, ...]:
+    """The batch sizes of the fit kernel's calls for problems of N (padded) points (`fit_calls`), for
+    callers whose number of problems moves from call to call (segmentation's refits), so that each
+    (N, options) compiles few kernels.
 
-    On CPU, which fits a call's problems `CHUNK_POINTS // N` at a time anyway, that chunk whatever K
-    (several calls for more), one chunk per CPU device (`parallel`): one kernel. A single problem then
-    pays for a chunk, which measured less than the kernel it saves (mOSD at 160 x 120, 7 scenes,
-    2026-12-02: steady-state time within 2%, compile 79 -> 55 s). On an accelerator, which fits them
-    side by side, the next of `ACCELERATOR_BATCHES` (calls of 64 beyond): five kernels."""
-    if jax.default_backend() == "cpu":
-        return max(1, CHUNK_POINTS // N) * parallel.cpu_devices()
-    return next((b for b in ACCELERATOR_BATCHES if b >= K), ACCELERATOR_BATCHES[-1])
+    On CPU, which fits a call's problems `CHUNK_POINTS // N` at a time anyway, that chunk and a quarter
+    of it, per CPU device (`parallel`): two kernels. A padded problem costs as much as a real one, and
+    the late growth steps refit one or two models: with one size a third of the problems fitted were
+    padding (mOSD at 160 x 120, N = 256); a quarter-size call costs a third of a full one. On an
+    accelerator, which fits them side by side, `ACCELERATOR_BATCHES`: five kernels."""
+    if jax.default_backend() != "cpu":
+        return ACCELERATOR_BATCHES
+    chunk = max(1, CHUNK_POINTS // N) * parallel.cpu_devices()
+    return tuple(sorted({max(chunk // 4, parallel.cpu_devices()), chunk}))
+
+
+def fit_calls(K: int, N: int):
+    """(start, size) of the fit kernel's calls for K problems of N points (`fit_call_sizes`, `calls`)."""
+    sizes = fit_call_sizes(N)
+    if jax.default_backend() != "cpu":  # side by side: one padded call beats two
+        n = next((b for b in sizes if b >= K), sizes[-1])
+        return ((s, n) for s in range(0, K, n))
+    return calls(K, sizes)
 
 
 def refit_points(largest: int, max_points: int) -> int:
@@ -59,21 +70,21 @@ def refit_points(largest: int, max_points: int) -> int:
 
 
 PAIR_SIZES = (1024, 4096, 16384, PAIRS)
-"""The call sizes of the pair kernels: four compiled sizes (about 1 s each on CPU). A larger call costs
-less per pair (on 2 CPU cores 330 ns a distance at 1024 pairs, 120 ns at 32768), a padded pair as much
-as a real one."""
+"""The call sizes of the pair kernels (`calls`): four compiled sizes (about 1 s each on CPU). A larger
+call costs less per pair (on 2 CPU cores 330 ns a distance at 1024 pairs, 120 ns at 32768), a padded
+pair as much as a real one."""
 
 
-def pair_calls(E: int):
-    """(start, size) of the calls covering E pairs: the smallest size that holds what is left, unless
-    more than half of it would be padding, then a full call of the largest size that fits (5,000 pairs:
-    4096 + 1024, not 16384 with 11,000 padded)."""
+def calls(E: int, sizes: tuple[int, ...] = PAIR_SIZES):
+    """(start, size) of the kernel calls covering E rows with calls of the given `sizes` (ascending):
+    the smallest size that holds what is left, unless more than half of it would be padding, then a
+    full call of the largest size that fits (5,000 pairs: 4096 + 1024, not 16384 with 11,000 padded)."""
     s = 0
     while s < E:
         left = E - s
-        n = next((n for n in PAIR_SIZES if n >= left), PAIRS)
-        if n > 2 * left and n > PAIR_SIZES[0]:
-            n = max(m for m in PAIR_SIZES if m <= left)
+        n = next((n for n in sizes if n >= left), sizes[-1])
+        if n > 2 * left and n > sizes[0]:
+            n = max(m for m in sizes if m <= left)
         yield s, n
         s += n
 

@@ -22,7 +22,7 @@ from . import parallel
 from . import rotation as so3
 from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
-from .padding import pair_calls
+from .padding import calls
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 
 if TYPE_CHECKING:
@@ -83,10 +83,10 @@ def ray_blocked(ws: Workspace, theta, model, ends, rays, margin, box: bool = Fal
 
 def _ray_kernel(ws: Workspace, kernel, theta, model, ends, rays, per_pair) -> np.ndarray:
     """`kernel(theta rows, ends, rays, index, per_pair[, limit])` over the pairs in fixed-size chunks
-    (`padding.pair_calls`); the box-chord kernels also get `limit`, the distance back to the camera."""
+    (`padding.calls`); the box-chord kernels also get `limit`, the distance back to the camera."""
     theta_d = np.asarray(theta, np.dtype(ws.dtype))
     hit = np.zeros(model.size, bool)
-    for s, n in pair_calls(model.size):
+    for s, n in calls(model.size):
         m = min(n, model.size - s)
         mi, pts, ray, val = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
         mi[:m], pts[:m], ray[:m], val[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], per_pair[s : s + m]

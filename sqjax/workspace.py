@@ -23,7 +23,7 @@ from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
 from .numerics import to_device
-from .padding import call_size, pad_rows, pair_calls, point_rows, refit_points
+from .padding import calls, fit_calls, pad_rows, point_rows, refit_points
 from .solver import fit_padded, fit_padded_sharded
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 from .visibility import seen_through
@@ -119,7 +119,7 @@ class Workspace:
         (`visibility.seen_through`, tested where the surface faces away) is at distance inf: no model
         explains what it would hide.
 
-        Only the pairs asked for are computed, in calls of a few fixed sizes (`padding.pair_calls`), a few queued
+        Only the pairs asked for are computed, in calls of a few fixed sizes (`padding.calls`), a few queued
         ahead of the one read back. Each pair gets its model's row of theta, gathered here, so the
         kernel compiles once per chunk size whatever the number of models.
         """
@@ -137,7 +137,7 @@ class Workspace:
                 dst[s : s + m] = np.asarray(src)[:m]
 
         pending = []
-        for s, n in pair_calls(E):
+        for s, n in calls(E):
             kernel = parallel.sharded_kernel(_pair_distances, split) if parallel.splits(n) else _pair_distances
             m = min(n, E - s)
             mi, pi = np.zeros(n, np.int64), np.zeros(n, np.int32)
@@ -161,7 +161,7 @@ class Workspace:
         fitter's own multistart (moment axes + EMS switches) when theta0 is None -> theta (K, 11), NaN
         rows where a fit failed.
 
-        The regions go to the batch kernel in calls of one size (`padding.call_size`), each of
+        The regions go to the batch kernel in calls of a few sizes (`padding.fit_calls`), each of
         `padding.refit_points` points. Kernels compiled on CPU: one per (N, start or multistart),
         5-15 s each the first time. The calls are queued before any result is read back. The size
         bound is traced, not compiled in: growth (which extrapolates) and the bounded part refits share
@@ -178,14 +178,14 @@ class Workspace:
             if r.size > max_points:
                 r = r[np.linspace(0, r.size - 1, max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
-        size = call_size(K, N)  # one kernel per refit: a long one's last call is full too
-        rows = np.arange(-(-K // size) * size)
-        rows = np.where(rows < K, rows, 0).reshape(-1, size)  # padding: copies of problem 0, dropped below
-        kernel = fit_padded_sharded if parallel.splits(size) else fit_padded
-        pending = [
-            kernel(pts[r].astype(host), msk[r], None if theta0 is None else theta0[r].astype(host), opts)[0]
-            for r in rows
-        ]
+        pending = []
+        for s, n in fit_calls(K, N):
+            r = np.arange(s, s + n)
+            r = np.where(r < K, r, 0)  # padding: copies of problem 0, dropped below
+            kernel = fit_padded_sharded if parallel.splits(n) else fit_padded
+            pending.append(
+                kernel(pts[r].astype(host), msk[r], None if theta0 is None else theta0[r].astype(host), opts)[0]
+            )
         theta = np.concatenate([np.asarray(t) for t in pending])[:K].astype(np.float64)
         return np.where(np.isfinite(theta).all(1, keepdims=True), theta, np.nan)
 

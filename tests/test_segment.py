@@ -7,7 +7,7 @@ import sqjax
 from sqjax import PinholeCamera, RangeImage, Superquadric, hoover, segment
 from sqjax.evaluate import volume_iou
 from sqjax.mesh import sample_surface
-from sqjax.padding import PAIR_SIZES, pair_calls
+from sqjax.padding import PAIR_SIZES, calls
 from sqjax.scenes import paper_scene, random_scene
 
 from helpers import mosd_image
@@ -108,8 +108,8 @@ def test_bad_input_type():
 
 
 def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
-    """A refit of K hypotheses (one per growth step, one per seed start) is ceil(K / size) calls of the
-    batch kernel, all of one of the few fixed batch sizes (`padding.call_size`), so growth steps do not
+    """A refit of K hypotheses (one per growth step, one per seed start) is a few calls of the batch
+    kernel, each of one of the few fixed batch sizes (`padding.fit_calls`), so growth steps do not
     recompile."""
     from sqjax import padding, workspace
 
@@ -123,7 +123,7 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     def record_refit(self, regions, theta0, **kw):
         before = len(calls)
         out = real_refit(self, regions, theta0, **kw)
-        refits.append((len(regions), len(calls) - before, len(set(calls[before:]))))
+        refits.append((len(regions), calls[before:]))
         return out
 
     monkeypatch.setattr(workspace, "fit_padded", record)
@@ -132,10 +132,13 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     seg = segment(image, merge=False)
     # points: 128 when every region fits (seed windows), else max_points = 256
     assert all(N in (128, 256) for _, N in calls), sorted(set(calls))
-    assert all(K == padding.call_size(2, N) for K, N in calls), sorted(set(calls))  # CPU: one chunk size
-    assert all(shapes == 1 for _, _, shapes in refits), refits
-    assert sum(made for _, made, _ in refits) == len(calls)
-    assert any(made > 1 for _, made, _ in refits)  # the seeds: more than one call
+    assert all(K in padding.fit_call_sizes(N) for K, N in calls), sorted(set(calls))  # CPU: two chunk sizes
+    for K, made in refits:  # one N per refit, the calls of the padding policy
+        assert len({N for _, N in made}) == 1 and [n for n, _ in made] == [
+            n for _, n in padding.fit_calls(K, made[0][1])
+        ]
+    assert sum(len(made) for _, made in refits) == len(calls)
+    assert any(len(made) > 1 for _, made in refits)  # the seeds: more than one call
     rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().extras.reseed)  # seeds, and each reseeding round
     # the three starts of the seeds, then a step each, then the five starts of the parts' volumes
     assert len(refits) <= 3 * rounds + seg.stats["growth_steps"] + 5
@@ -513,19 +516,20 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
         assert np.all(seg.labels.ravel()[p.region] == i + 1)
 
 
-def test_pair_calls_cover_every_pair_once_with_little_padding():
-    """The pair kernels' calls (`padding.pair_calls`) cover pairs 0..E-1 once, in order, each call of a
+def test_kernel_calls_cover_every_row_once_with_little_padding():
+    """The pair kernels' calls (`padding.calls`) cover pairs 0..E-1 once, in order, each call of a
     compiled size; at most half of a call is padding unless it is the smallest size, and a large E is
     cut into full calls of the largest."""
     for E in (1, 1000, 1024, 1025, 3000, 5000, 16385, 40000, 100000, 250001):
-        calls = list(pair_calls(E))
-        starts = [s for s, _ in calls]
-        assert starts == list(np.cumsum([0] + [n for _, n in calls[:-1]])), (E, calls)
-        assert all(n in PAIR_SIZES for _, n in calls) and calls[-1][0] + calls[-1][1] >= E > calls[-1][0]
-        for s, n in calls:
-            assert n == PAIR_SIZES[0] or 2 * min(n, E - s) >= n, (E, calls)
-    assert [n for _, n in pair_calls(5000)] == [4096, 1024]
-    assert [n for _, n in pair_calls(100000)][:3] == [PAIR_SIZES[-1]] * 3
+        made = list(calls(E))
+        starts = [s for s, _ in made]
+        assert starts == list(np.cumsum([0] + [n for _, n in made[:-1]])), (E, made)
+        assert all(n in PAIR_SIZES for _, n in made) and made[-1][0] + made[-1][1] >= E > made[-1][0]
+        for s, n in made:
+            assert n == PAIR_SIZES[0] or 2 * min(n, E - s) >= n, (E, made)
+    assert [n for _, n in calls(5000)] == [4096, 1024]
+    assert [n for _, n in calls(100000)][:3] == [PAIR_SIZES[-1]] * 3
+    assert [n for _, n in calls(17, (4, 16))] == [16, 4] and [n for _, n in calls(5, (4, 16))] == [4, 4]
 
 
 def test_each_segmentation_kernel_compiles_once_per_padded_shape():
@@ -540,7 +544,7 @@ def test_each_segmentation_kernel_compiles_once_per_padded_shape():
     from helpers import compiled_variants
 
     kernels = {  # kernel: most variants over the three scenes
-        "fit": (solver.fit_padded, 4),  # N in {128, max_points} x (warm start, multistart)
+        "fit": (solver.fit_padded, 8),  # N in {128, max_points} x 2 call sizes x (warm start, multistart)
         "pair distances": (workspace._pair_distances, len(PAIR_SIZES) * 2),  # call sizes x 2 point-row sizes
         "free space": (visibility._free_space, len(PAIR_SIZES) * 2),
         "free space (box)": (visibility._free_space_box, len(PAIR_SIZES) * 2),
