@@ -17,7 +17,7 @@ CHUNK_POINTS = 4096
 a chunk's points and every intermediate of its LM steps then stay in cache."""
 
 ACCELERATOR_BATCHES = (1, 4, 16, 32, 64)
-"""Problems per call of the fit kernel on an accelerator, for callers whose count moves (`call_size`)."""
+"""Problems per call of the fit kernel on an accelerator, for callers whose count moves (`fit_call_sizes`)."""
 
 PAIRS = 1 << 15
 """Most (model, point) pairs per call of a pair kernel (eq. 10 distances, free-space tests)."""
