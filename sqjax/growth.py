@@ -28,8 +28,8 @@ def grow(ws: Workspace, models: Models):
     R = models.regions[act]
     cand = ws.dom.dilate(R, opts.rings) & ~R  # pyright: ignore[reportArgumentType]  (segment() sets rings)
     k, p = np.nonzero(cand)
-    d, inside, _ = ws.distances(models.theta[act], k, p)
     factor = np.where(models.loose[act], opts.admit_factor, 1.0)
+    d, inside, _ = ws.distances(models.theta[act], k, p, within=factor[k] * ws.tau)
     ok = inside & (d < factor[k] * ws.tau)
     before = R.sum(1)
     grown = R.copy()
@@ -42,7 +42,7 @@ def grow(ws: Workspace, models: Models):
     grown = grown[sel]
     new_theta = ws.fit([np.flatnonzero(g) for g in grown], models.theta[act[sel]])
     k, p = np.nonzero(grown)
-    d, _, _ = ws.distances(np.nan_to_num(new_theta), k, p)
+    d, _, _ = ws.distances(np.nan_to_num(new_theta), k, p, within=ws.tau)
     inl = d < ws.tau
     kept = np.bincount(k[inl], minlength=sel.size)
     size = np.bincount(k, minlength=sel.size)

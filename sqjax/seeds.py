@@ -165,7 +165,7 @@ def seed(ws: Workspace, seeds: list | None = None) -> tuple[Models, Workspace]:
             level = max(noise.sigma, float(np.median(sigma)))
             ws = ws.with_noise(dataclasses.replace(noise, sigma=level, tau=sensor.threshold_factor * level))
             model, point = pairs(seeds)
-            d = split_by_model(ws.distances(theta, model, point)[0], model, len(seeds))
+            d = split_by_model(ws.distances(theta, model, point, within=ws.tau)[0], model, len(seeds))
     regions = np.zeros((len(seeds), ws.P), bool)
     keep = np.isfinite(score)
     dist = []

@@ -110,14 +110,16 @@ class Workspace:
         """The camera centre in the workspace frame (range images), None for clouds."""
         return -self.centre if self.dom.views is not None else None
 
-    def distances(self, theta, model, point):
+    def distances(self, theta, model, point, within: float | np.ndarray = np.inf):
         """Eq. 10 distances (E,) float32 of the pairs (point[e] to model theta[model[e]]), whether
         each point is inside its model enlarged (E,) bool and whether the model's surface there faces
         away from the camera (E,) bool (see `_pair_distances`). theta (K, 11); model, point (E,).
         Distances are in units of the local noise over `noise.sigma` (`Noise.scale`); with
         `ExtraOptions.visibility` a point the camera saw through the model to reach
         (`visibility.seen_through`, tested where the surface faces away) is at distance inf: no model
-        explains what it would hide.
+        explains what it would hide. That test runs only on pairs nearer than `within` (a scalar or
+        (E,)): a caller that thresholds the distances at `within` or below decides alike, and a
+        farther pair keeps its distance.
 
         Only the pairs asked for are computed, in calls of a few fixed sizes (`padding.calls`), a few queued
         ahead of the one read back. Each pair gets its model's row of theta, gathered here, so the
@@ -149,10 +151,11 @@ class Workspace:
             read(*item)
         if self.scale is not None:
             d /= self.scale[point]
-        if self.opts.extras.visibility and away.any():
+        test = away & (d < within)
+        if self.opts.extras.visibility and test.any():
             # visibility: a point whose ray passes through the model's solid (deeper than the noise)
             # is not on the surface the camera saw of it, however near its back face: not explained
-            a = np.flatnonzero(away)
+            a = np.flatnonzero(test)
             d[a[seen_through(self, theta, model[a], point[a])]] = np.inf
         return d, inside, away
 

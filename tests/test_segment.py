@@ -588,6 +588,11 @@ def test_a_point_the_camera_saw_through_a_model_is_not_explained_by_it():
         assert away[covered.size :].all()  # the wall lies on the slab's back face
         if visibility:
             assert np.all(np.isinf(in_front))
+            # the test only below `within`: the same below it, the plain distance (< tau) above
+            near, _, _ = ws.distances(
+                theta, model, np.tile(covered, 2), within=np.r_[np.full(covered.size, np.inf), np.zeros(covered.size)]
+            )
+            assert np.array_equal(near[: covered.size], behind) and np.all(near[covered.size :] < ws.tau)
         else:
             assert np.all(in_front < ws.tau)  # eq. 10 alone: explained from behind
     # a lying cylinder (radius 0.3): its model 0.5 tau too wide contains every observed point, and
