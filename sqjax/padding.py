@@ -36,25 +36,27 @@ def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:
     return np.concatenate([a, np.repeat(np.asarray(fill)[None], n - a.shape[0], 0)]) if n > a.shape[0] else a
 
 
-def fit_call_sizes(N: int) -> tuple[int, ...]:
+def fit_call_sizes(N: int, quarter: bool = True) -> tuple[int, ...]:
     """The batch sizes of the fit kernel's calls for problems of N (padded) points (`fit_calls`), for
     callers whose number of problems moves from call to call (segmentation's refits), so that each
     (N, options) compiles few kernels.
 
-    On CPU, which fits a call's problems `CHUNK_POINTS // N` at a time anyway, that chunk and a quarter
-    of it, per CPU device (`parallel`): two kernels. A padded problem costs as much as a real one, and
-    the late growth steps refit one or two models: with one size a third of the problems fitted were
-    padding (mOSD at 160 x 120, N = 256); a quarter-size call costs a third of a full one. On an
-    accelerator, which fits them side by side, `ACCELERATOR_BATCHES`: five kernels."""
+    On CPU, which fits a call's problems `CHUNK_POINTS // N` at a time anyway, that chunk and (with
+    `quarter`) a quarter of it, per CPU device (`parallel`). A padded problem costs as much as a real
+    one, and the late growth steps refit one or two models: with one size a third of the problems
+    fitted were padding (mOSD at 160 x 120, N = 256); a quarter-size call costs a third of a full one.
+    Segmentation asks for the quarter size for warm-started refits (3-4 s to compile, 0.84 of the
+    time per scene), not for the multistart's few calls (the merges': 7-9 s to compile, for about
+    0.1 s per scene). On an accelerator, which fits them side by side, `ACCELERATOR_BATCHES`."""
     if jax.default_backend() != "cpu":
         return ACCELERATOR_BATCHES
     chunk = max(1, CHUNK_POINTS // N) * parallel.cpu_devices()
-    return tuple(sorted({max(chunk // 4, parallel.cpu_devices()), chunk}))
+    return tuple(sorted({max(chunk // 4, parallel.cpu_devices()) if quarter else chunk, chunk}))
 
 
-def fit_calls(K: int, N: int):
+def fit_calls(K: int, N: int, quarter: bool = True):
     """(start, size) of the fit kernel's calls for K problems of N points (`fit_call_sizes`, `calls`)."""
-    sizes = fit_call_sizes(N)
+    sizes = fit_call_sizes(N, quarter)
     if jax.default_backend() != "cpu":  # side by side: one padded call beats two
         n = next((b for b in sizes if b >= K), sizes[-1])
         return ((s, n) for s in range(0, K, n))

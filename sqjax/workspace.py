@@ -182,7 +182,7 @@ class Workspace:
                 r = r[np.linspace(0, r.size - 1, max_points).astype(np.int64)]
             pts[i, : r.size], msk[i, : r.size] = self.host_points[r], True
         pending = []
-        for s, n in fit_calls(K, N):
+        for s, n in fit_calls(K, N, quarter=theta0 is not None):
             r = np.arange(s, s + n)
             r = np.where(r < K, r, 0)  # padding: copies of problem 0, dropped below
             kernel = fit_padded_sharded if parallel.splits(n) else fit_padded

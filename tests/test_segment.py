@@ -123,7 +123,7 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     def record_refit(self, regions, theta0, **kw):
         before = len(calls)
         out = real_refit(self, regions, theta0, **kw)
-        refits.append((len(regions), calls[before:]))
+        refits.append((len(regions), calls[before:], theta0 is not None))
         return out
 
     monkeypatch.setattr(workspace, "fit_padded", record)
@@ -133,12 +133,11 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     # points: 128 when every region fits (seed windows), else max_points = 256
     assert all(N in (128, 256) for _, N in calls), sorted(set(calls))
     assert all(K in padding.fit_call_sizes(N) for K, N in calls), sorted(set(calls))  # CPU: two chunk sizes
-    for K, made in refits:  # one N per refit, the calls of the padding policy
-        assert len({N for _, N in made}) == 1 and [n for n, _ in made] == [
-            n for _, n in padding.fit_calls(K, made[0][1])
-        ]
-    assert sum(len(made) for _, made in refits) == len(calls)
-    assert any(len(made) > 1 for _, made in refits)  # the seeds: more than one call
+    for K, made, warm in refits:  # one N per refit, the calls of the padding policy
+        N = made[0][1]
+        assert len({n for _, n in made}) == 1 and [k for k, _ in made] == [k for _, k in padding.fit_calls(K, N, warm)]
+    assert sum(len(made) for _, made, _ in refits) == len(calls)
+    assert any(len(made) > 1 for _, made, _ in refits)  # the seeds: more than one call
     rounds = 1 + min(seg.stats["reseeded"], sqjax.SegmentOptions().extras.reseed)  # seeds, and each reseeding round
     # the three starts of the seeds, then a step each, then the five starts of the parts' volumes
     assert len(refits) <= 3 * rounds + seg.stats["growth_steps"] + 5
@@ -544,7 +543,7 @@ def test_each_segmentation_kernel_compiles_once_per_padded_shape():
     from helpers import compiled_variants
 
     kernels = {  # kernel: most variants over the three scenes
-        "fit": (solver.fit_padded, 8),  # N in {128, max_points} x 2 call sizes x (warm start, multistart)
+        "fit": (solver.fit_padded, 6),  # N in {128, max_points} x (warm start: 2 call sizes, multistart: 1)
         "pair distances": (workspace._pair_distances, len(PAIR_SIZES) * 2),  # call sizes x 2 point-row sizes
         "free space": (visibility._free_space, len(PAIR_SIZES) * 2),
         "free space (box)": (visibility._free_space_box, len(PAIR_SIZES) * 2),
