@@ -3,8 +3,11 @@
     python benchmarks/dataset.py                  # all 59 mOSD scenes (+ one corrupt file), every mode
     python benchmarks/dataset.py --limit 8        # the first 8 scenes
     python benchmarks/dataset.py --modes serial,local --out benchmarks/out/dataset.json
+    python benchmarks/dataset.py --modes local --cache ~/.cache/sqjax   # kernels from the CLI's cache
 
-Modes, each in a fresh process (so each pays its compile, as a user's run would):
+Modes, each in a fresh process (so each pays its compile, as a user's first run would; with
+`--cache DIR`, JAX's persistent compilation cache in DIR, as the CLI's default, so that a second run
+loads its kernels):
 
 - `serial`: a plain loop of `read_range_image(f).subsample(step)` and `segment` (no writing).
 - `local`: `sqjax.segment_many(files, out=...)` in one process: reads, segments, scores, writes every
@@ -198,12 +201,22 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-corrupt", action="store_true", help="do not add a truncated copy of the first scene")
     ap.add_argument("--out", default="benchmarks/out/dataset.json")
+    ap.add_argument(
+        "--cache",
+        default=None,
+        help="JAX's persistent compilation cache in this folder in every mode (as the CLI's default); "
+        "a second run then loads its kernels instead of compiling them",
+    )
     ap.add_argument("--_mode", help=argparse.SUPPRESS)
     ap.add_argument("--_workdir", help=argparse.SUPPRESS)
     ap.add_argument("--_files", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
 
     if args._mode:  # a child: one mode, result as JSON in the workdir
+        if args.cache:
+            import sqjax
+
+            sqjax.enable_compilation_cache(args.cache)
         files = json.loads(Path(args._files).read_text())
         res = run_mode(args._mode, files, args, args._workdir)
         (Path(args._workdir) / f"{args._mode}.json").write_text(json.dumps(res, default=float))
@@ -248,7 +261,7 @@ def main(argv=None):
             str(args.workers),
             "--threads",
             str(args.threads),
-        ]
+        ] + (["--cache", args.cache] if args.cache else [])
         print(f"{m}: {len(files)} inputs ...", flush=True)
         subprocess.run(cmd, check=True)
         results["modes"][m] = json.loads((workdir / f"{m}.json").read_text())
