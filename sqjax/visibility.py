@@ -82,8 +82,8 @@ def ray_blocked(ws: Workspace, theta, model, ends, rays, margin, box: bool = Fal
 
 
 def _ray_kernel(ws: Workspace, kernel, theta, model, ends, rays, per_pair) -> np.ndarray:
-    """`kernel(theta rows, ends, rays, index, per_pair[, limit])` over the pairs in fixed-size chunks
-    (`padding.calls`); the box-chord kernels also get `limit`, the distance back to the camera."""
+    """`kernel(theta rows, ends, rays, index, per_pair[, limit])` over the pairs in calls of a few fixed
+    sizes (`padding.calls`); the box-chord kernels also get `limit`, the distance back to the camera."""
     theta_d = np.asarray(theta, np.dtype(ws.dtype))
     hit = np.zeros(model.size, bool)
     for s, n in calls(model.size):

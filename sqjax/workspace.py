@@ -165,8 +165,8 @@ class Workspace:
         rows where a fit failed.
 
         The regions go to the batch kernel in calls of a few sizes (`padding.fit_calls`), each of
-        `padding.refit_points` points. Kernels compiled on CPU: one per (N, start or multistart),
-        5-15 s each the first time. The calls are queued before any result is read back. The size
+        `padding.refit_points` points. Kernels compiled on CPU: one per (N, call size, start or
+        multistart), 3-9 s each the first time. The calls are queued before any result is read back. The size
         bound is traced, not compiled in: growth (which extrapolates) and the bounded part refits share
         one kernel per shape.
         """
