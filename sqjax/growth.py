@@ -28,9 +28,9 @@ def grow(ws: Workspace, models: Models):
     R = models.regions[act]
     cand = ws.dom.dilate(R, opts.rings) & ~R  # pyright: ignore[reportArgumentType]  (segment() sets rings)
     k, p = np.nonzero(cand)
-    factor = np.where(models.loose[act], opts.admit_factor, 1.0)
-    d, inside, _ = ws.distances(models.theta[act], k, p, within=factor[k] * ws.tau)
-    ok = inside & (d < factor[k] * ws.tau)
+    admit = np.where(models.loose[act], opts.admit_factor, 1.0)[k] * ws.tau  # (E,) each pair's admission distance
+    d, inside, _ = ws.distances(models.theta[act], k, p, within=admit)
+    ok = inside & (d < admit)
     before = R.sum(1)
     grown = R.copy()
     grown[k[ok], p[ok]] = True

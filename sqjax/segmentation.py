@@ -139,10 +139,8 @@ def _prepare(data, opts: SegmentOptions, k: int, cloud_sigma: float | None = Non
         raise ValueError(f"segment: {pts.shape[0]} valid points; at least {seeds.min_seed_points} are needed")
     nb = knn(pts, k)
     window = _cloud_window(opts)
-    if sensor.noise is not None:
-        sigma = sensor.noise
-    else:
-        sigma = cloud_sigma if cloud_sigma is not None else max(cloud_noise(pts, window), 1e-12)
+    given = sensor.noise if sensor.noise is not None else cloud_sigma  # the options', else the full cloud's
+    sigma = given if given is not None else max(cloud_noise(pts, window), 1e-12)
     dom = cloud_domain(pts, rows, n_rows, nb)
     dom = dataclasses.replace(dom, seeds=cloud_seeds(dom, window, seeds.min_seed_points), seed_size=window)
     return dom, Noise(sigma, sensor.threshold if sensor.threshold is not None else sensor.threshold_factor * sigma)

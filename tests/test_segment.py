@@ -516,9 +516,9 @@ def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
 
 
 def test_kernel_calls_cover_every_row_once_with_little_padding():
-    """The pair kernels' calls (`padding.calls`) cover pairs 0..E-1 once, in order, each call of a
-    compiled size; at most half of a call is padding unless it is the smallest size, and a large E is
-    cut into full calls of the largest."""
+    """Kernel calls (`padding.calls`: the pair kernels', the fit kernel's on CPU) cover rows 0..E-1
+    once, in order, each call of a compiled size; at most half of a call is padding unless it is the
+    smallest size, and a large E is cut into full calls of the largest."""
     for E in (1, 1000, 1024, 1025, 3000, 5000, 16385, 40000, 100000, 250001):
         made = list(calls(E))
         starts = [s for s, _ in made]
