@@ -3,9 +3,10 @@ one batch.
 
 A step enlarges each model (a1..a3 times `enlarge`), takes the points image-adjacent to its region
 (`rings` rings) that lie inside the enlarged model and near its surface (eq. 10 within
-`admit_factor` tau), refits on the grown region from the current parameters, and keeps the step while
-the region grows and the fit stays acceptable (`keep_fraction` of the grown region within tau);
-otherwise the model stops in its last good state.
+`admit_factor` tau: loose, or within tau: strict), refits on the grown region from the current
+parameters, and keeps the step while the region grows and the fit stays acceptable (`keep_fraction` of
+the grown region within tau). A failed step is tried in the other admission from the same state; when
+both failed there, the model stops in its last good state (`_failed`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ def grow(ws: Workspace, models: Models):
     grown = R.copy()
     grown[k[ok], p[ok]] = True
     has_new = np.bincount(k[ok], minlength=act.size) > 0
-    models.active[act[~has_new]] = False
+    _failed(models, act[~has_new], before[~has_new], admitted=False)
     sel = np.flatnonzero(has_new)
     if sel.size == 0:
         return
@@ -51,9 +52,22 @@ def grow(ws: Workspace, models: Models):
     grown[k[inl], p[inl]] = True  # now the new regions: the grown points within tau
     m = act[sel]
     good = np.isfinite(new_theta).all(1) & (kept >= opts.keep_fraction * size) & (kept > before[sel])
-    retry = ~good & models.loose[m]  # retry with only the points within tau
-    models.active[m[~good & ~retry]] = False  # fit broke down or no growth: keep the last good state
-    models.loose[m[retry]] = False
-    models.theta[m[good]], models.regions[m[good]], models.loose[m[good]] = new_theta[good], grown[good], True
+    _failed(models, m[~good], before[sel][~good])
+    models.theta[m[good]], models.regions[m[good]] = new_theta[good], grown[good]
     for j in np.flatnonzero(good):
         models.dist[m[j]] = dist[j]
+
+
+def _failed(models: Models, m: np.ndarray, size: np.ndarray, admitted: bool = True):
+    """Models `m` (regions of `size` points) whose step failed: it broke the fit, did not grow or
+    (`admitted` False) admitted nothing. The model takes its next step in the other admission (loose:
+    candidates within admit_factor tau, strict: within tau), unless that one failed in this same state
+    too, or a loose step admitted nothing (a strict one would not either); then it stops in its last
+    good state. A model keeps the admission of its last good step: after a loose step fails, strict
+    steps follow until they stop (a loose step after each strict one failed again in most cases, half
+    the steps of the last growing models on mOSD), then one loose step tries again."""
+    loose = models.loose[m]
+    stop = (models.failed_at[m] == size) | (loose & (not admitted))
+    models.failed_at[m] = size
+    models.loose[m] = ~loose
+    models.active[m[stop]] = False

@@ -27,12 +27,14 @@ def split_by_model(values, model, k):
 class Models:
     """The hypotheses on the host: parameters theta (M, 11), regions (M, P) bool, and for each model
     the eq. 10 distances of its region's points (`dist[i]` aligned with `np.flatnonzero(regions[i])`,
-    float32); flags `active` (still growing) and `loose` (admission at admit_factor * tau)."""
+    float32); flags `active` (still growing) and `loose` (admission at admit_factor * tau), and
+    `failed_at`, the region's size when a step in the other admission than `loose` last failed (-1: none)."""
 
     def __init__(self, theta, regions, dist):
         self.theta, self.regions, self.dist = theta, regions, list(dist)
         self.active = np.ones(len(theta), bool)
         self.loose = np.ones(len(theta), bool)
+        self.failed_at = np.full(len(theta), -1, np.int64)
 
     def concat(self, other: Models) -> Models:
         """These hypotheses followed by `other`'s, flags included."""
@@ -43,6 +45,7 @@ class Models:
         )
         out.active = np.concatenate([self.active, other.active])
         out.loose = np.concatenate([self.loose, other.loose])
+        out.failed_at = np.concatenate([self.failed_at, other.failed_at])
         return out
 
     @classmethod
@@ -54,5 +57,5 @@ class Models:
         """Keep the hypotheses `keep` (a bool mask or indices, in that order), in place."""
         keep = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep)
         self.dist = [self.dist[i] for i in keep]
-        for name in ("theta", "regions", "active", "loose"):
+        for name in ("theta", "regions", "active", "loose", "failed_at"):
             setattr(self, name, getattr(self, name)[keep])

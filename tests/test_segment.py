@@ -353,6 +353,26 @@ def test_merge_candidates_grow_linearly_with_the_models():
     assert len(merge_candidates(pts, regions[:5])) == 10  # few models: every pair, as before
 
 
+def test_a_failed_growth_step_is_tried_once_in_the_other_admission():
+    """Loose fails -> strict steps from the same state (and on after they succeed); strict fails in a
+    new state -> one loose step; both failed in one state, or a loose step admitted nothing -> stop."""
+    from sqjax.growth import _failed
+    from sqjax.hypotheses import Models
+
+    models = Models(np.zeros((3, 11)), np.zeros((3, 5), bool), [[], [], []])
+    _failed(models, np.array([0, 1]), np.array([10, 10]))  # loose steps failed at 10 points
+    assert models.active.all() and not models.loose[:2].any() and models.loose[2]
+    _failed(models, np.array([0]), np.array([10]))  # model 0: strict failed at 10 as well
+    assert not models.active[0]
+    # model 1 grew strictly to 14 and its strict step then failed: loose again, from 14
+    _failed(models, np.array([1]), np.array([14]))
+    assert models.active[1] and models.loose[1]
+    _failed(models, np.array([1]), np.array([14]))  # the loose step failed there too
+    assert not models.active[1]
+    _failed(models, np.array([2]), np.array([7]), admitted=False)  # loose admitted nothing: strict would not
+    assert not models.active[2]
+
+
 def test_large_images_are_segmented_at_a_working_resolution_and_labelled_in_full():
     """A 240 x 320 image is segmented at 120 x 160 (step 2) and every full-size pixel is labelled by
     the final models: the same parts are found, with labels at the input's size."""
