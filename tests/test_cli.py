@@ -525,6 +525,18 @@ def test_errors_name_the_input(capsys, tmp_path):
     assert not (tmp_path / "o").exists()  # the folder made for the results is removed again
 
 
+def test_a_mesh_with_too_few_vertices_says_how_it_was_read(capsys, tmp_path):
+    """A cube's STL is 8 distinct vertices, too few to segment: the error says a mesh is read as its
+    vertices, so that the user knows to sample its surface."""
+    import trimesh
+
+    path = tmp_path / "cube.stl"
+    trimesh.creation.box().export(path)
+    code, _, err = run(capsys, "segment", path, "--out", tmp_path / "o")
+    assert_one_line_error(code, err)
+    assert str(path) in err and "8 valid points" in err and "sample its surface" in err
+
+
 def test_one_input_stays_on_one_device_and_many_are_split_over_the_cores(
     capsys, scene, monkeypatch, no_segment, tmp_path
 ):

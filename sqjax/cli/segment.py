@@ -17,6 +17,9 @@ from pathlib import Path
 from .common import CLIError, camera_arg, depth_scale_arg, one_line, ortho_arg, positive, segment_options
 from .progress import Progress
 
+MESH_SUFFIXES = (".stl", ".obj")
+"""Inputs that are always meshes (read as their distinct vertices, `formats.read_points`)."""
+
 
 def _description() -> str:
     from ..formats import SUPPORTED_INPUTS
@@ -184,7 +187,10 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         try:
             seg = segment(data, options=options, progress=progress)
         except ValueError as e:  # e.g. too few valid points: say which input
-            raise CLIError(f"{input_path}: {one_line(e)}" if input_path else one_line(e)) from None
+            msg = one_line(e)
+            if kind == "point_cloud" and Path(input_path or "").suffix.lower() in MESH_SUFFIXES and "points" in msg:
+                msg += " (a mesh is read as its distinct vertices: sample its surface for more points)"
+            raise CLIError(f"{input_path}: {msg}" if input_path else msg) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
         written = write_segmentation(
             seg, data, out, input_path=input_path, input_shape=input_shape, settings=settings, figure=figure
