@@ -1,6 +1,7 @@
 """Reading and writing range images and point clouds (host side, numpy).
 
-Range images (`read_range_image` / `write_range_image`): `.npy` / `.npz` depth arrays, 16-bit `.png`
+Range images (`read_range_image` / `write_range_image`): `.npy` / `.npz` depth arrays (a `.npy` may be a
+pickled dict of arrays with `depth` and `rgb`, UOIS's frames: only arrays are unpickled), 16-bit `.png`
 depth, and organised PCL `.pcd` clouds (HEIGHT > 1; `DATA ascii`, `binary`, `binary_compressed`).
 Point sets (`read_points` / `write_points`): `.ply`, `.xyz` / `.txt`, `.npy`, `.pcd`, and the vertices
 of `.obj` / `.stl` meshes. RGB-D frames (`read_rgbd`): a 16-bit depth PNG, an optional colour image
@@ -35,6 +36,7 @@ _READ_ERRORS = (ValueError, EOFError, struct.error, zipfile.BadZipFile, zlib.err
 
 # -------------------------------------------------------------------------------------- depth arrays
 def _load_npy(path):
+    """The array of a .npy file; a pickled object only when it is made of arrays (`_arrays_only`)."""
     with open(path, "rb") as f:
         if f.read(6) != b"\x93NUMPY":
             raise ValueError("not a NumPy .npy file (bad magic bytes)")
@@ -42,17 +44,57 @@ def _load_npy(path):
         return np.load(path, allow_pickle=False)
     except ValueError as e:
         if "allow_pickle" in str(e):
-            raise ValueError(
-                "holds a pickled Python object, not loaded for safety; if you trust the file, use "
-                "np.load(path, allow_pickle=True) and build the RangeImage yourself"
-            ) from None
+            return _arrays_only(path)
         raise
     except Exception as e:  # numpy parses the header with tokenize / ast: damaged ones fail in many ways
         raise ValueError(f"damaged .npy ({type(e).__name__}: {e})") from None
 
 
+class _ArraysUnpickler(pickle.Unpickler):
+    """Unpickles NumPy arrays, dtypes and plain containers (dict, list, tuple, str, numbers) and
+    refuses every other global, so that no code named by the file runs."""
+
+    _ALLOWED = {
+        (m, n) for m in ("numpy.core.multiarray", "numpy._core.multiarray") for n in ("_reconstruct", "scalar")
+    } | {("numpy", "ndarray"), ("numpy", "dtype"), ("_codecs", "encode")}  # encode: Python 2's byte strings
+
+    def find_class(self, module, name):
+        if (module, name) in self._ALLOWED:
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"{module}.{name}")
+
+
+def _arrays_only(path):
+    """A .npy whose payload is a pickled object (a dict of arrays, as UOIS's RGB-D frames are), read
+    with `_ArraysUnpickler`: the object, or ValueError when it holds anything but arrays."""
+    try:
+        with open(path, "rb") as f:
+            major, _ = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+            read_header(f)
+            obj = _ArraysUnpickler(f, encoding="latin1").load()  # latin1: Python 2 pickles' array bytes
+    except pickle.UnpicklingError as e:
+        raise ValueError(
+            f"holds a pickled Python object that is not only arrays (it names {e}), not loaded for safety; "
+            "if you trust the file, use np.load(path, allow_pickle=True) and build the RangeImage yourself"
+        ) from None
+    except Exception as e:  # truncated or damaged pickles fail in many ways
+        raise ValueError(f"damaged .npy ({type(e).__name__}: {e})") from None
+    return obj.item() if isinstance(obj, np.ndarray) and obj.dtype == object and obj.shape == () else obj
+
+
 def _npy_image(path):
-    return _load_npy(path), None, None, None, None
+    """A depth array, or a pickled dict of arrays with `depth` (H, W) and optionally `rgb` / `colors`
+    (H, W, 3) (UOIS's RealSense frames)."""
+    a = _load_npy(path)
+    if isinstance(a, np.ndarray) and a.dtype == object:
+        raise ValueError(f"holds a pickled object array of shape {a.shape}, not a depth image or a dict with 'depth'")
+    if not isinstance(a, dict):
+        return a, None, None, None, None
+    if "depth" not in a:
+        raise ValueError(f"holds a dict without a 'depth' array (keys: {sorted(map(str, a))})")
+    colors = next((a[k] for k in ("rgb", "colors", "color") if k in a), None)
+    return np.asarray(a["depth"]), None, None, None, None if colors is None else np.asarray(colors)
 
 
 def _npz_image(path):

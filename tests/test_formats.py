@@ -327,11 +327,14 @@ def test_real_mesh_vertices():
 
 
 def test_uois_pickled_npy(tmp_path):
-    """The UOIS .npy files are pickled dicts: refused (no unpickling of files), then usable via npz / png."""
+    """The UOIS .npy files are pickled dicts of arrays (depth in mm, rgb): read without running any code
+    the file names, equal to a trusted np.load, with their colours; also usable via npz / png."""
     folder = data_path("uois_realsense_tabletop")
-    with pytest.raises(ValueError, match=r"image_0000\.npy.*pickled.*allow_pickle=True"):
-        read_range_image(folder / "image_0000.npy", camera=CAM)
-    depth_mm = np.load(folder / "image_0000.npy", allow_pickle=True).item()["depth"]
+    frame = np.load(folder / "image_0000.npy", allow_pickle=True).item()  # trusted test data
+    depth_mm = frame["depth"]
+    img = read_range_image(folder / "image_0000.npy", camera=CAM, depth_scale=1000)
+    assert img.shape == (480, 640) and np.array_equal(img.colors, frame["rgb"])
+    assert np.array_equal(np.where(img.valid, img.depth * 1000, 0).round(), depth_mm)
     p = json.loads((folder / "camera_params.json").read_text())
     cam = dict(fx=p["fx"], fy=p["fy"], cx=p["x_offset"], cy=p["y_offset"])
     np.savez(tmp_path / "u.npz", depth=depth_mm, **cam)
@@ -342,6 +345,28 @@ def test_uois_pickled_npy(tmp_path):
     write_range_image(tmp_path / "u.png", img, depth_scale=1000)
     back = read_range_image(tmp_path / "u.png", camera=img.camera, depth_scale=1000)
     assert same(back.depth, img.depth)
+
+
+class _Payload:
+    """Unpickling it would run code (create a file); a reader must refuse it, not run it."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def test_pickled_npy_that_names_code_is_refused_and_nothing_runs(tmp_path):
+    marker = tmp_path / "ran"
+    frame = {"depth": np.ones((4, 4), np.uint16), "hook": _Payload(marker)}
+    np.save(tmp_path / "evil.npy", np.array(frame, dtype=object), allow_pickle=True)
+    with pytest.raises(ValueError, match=r"evil\.npy.*not only arrays"):
+        read_range_image(tmp_path / "evil.npy", camera=CAM)
+    assert not marker.exists()
+    np.save(tmp_path / "ok.npy", np.array({"depth": np.full((4, 5), 2.0)}, dtype=object), allow_pickle=True)
+    img = read_range_image(tmp_path / "ok.npy", camera=CAM)
+    assert img.shape == (4, 5) and np.all(img.depth == 2.0) and img.colors is None
 
 
 # ------------------------------------------------------------------------------------------- errors
