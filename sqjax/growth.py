@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .hypotheses import Models, split_by_model
+from .hypotheses import Models, mask_pairs, split_by_model
 from .workspace import Workspace
 
 
@@ -28,7 +28,7 @@ def grow(ws: Workspace, models: Models):
         return
     R = models.regions[act]
     cand = ws.dom.dilate(R, opts.rings) & ~R  # pyright: ignore[reportArgumentType]  (segment() sets rings)
-    k, p = np.nonzero(cand)
+    k, p = mask_pairs(cand)
     admit = np.where(models.loose[act], opts.admit_factor, 1.0)[k] * ws.tau  # (E,) each pair's admission distance
     d, inside, _ = ws.distances(models.theta[act], k, p, within=admit)
     ok = inside & (d < admit)
@@ -42,7 +42,7 @@ def grow(ws: Workspace, models: Models):
         return
     grown = grown[sel]
     new_theta = ws.fit([np.flatnonzero(g) for g in grown], models.theta[act[sel]])
-    k, p = np.nonzero(grown)
+    k, p = mask_pairs(grown)
     d, _, _ = ws.distances(np.nan_to_num(new_theta), k, p, within=ws.tau)
     inl = d < ws.tau
     kept = np.bincount(k[inl], minlength=sel.size)

@@ -15,7 +15,7 @@ import numpy as np
 
 from .chart import to_world
 from .domain import Domain, free_components, viewing_rays
-from .hypotheses import Models, split_by_model
+from .hypotheses import Models, mask_pairs, split_by_model
 from .rangeimage import RangeImage
 from .superquadric import Superquadric
 from .workspace import Workspace
@@ -54,7 +54,7 @@ def label_image(ws: Workspace, models: Models) -> np.ndarray:
         # Each pixel goes to its nearest model. A model explains a pixel from the camera's side, or
         # with a face turned away from the camera (the underside of a block standing on another, the
         # inside of a cup): the camera's side wins, by tau.
-        k, p = np.nonzero(models.regions)
+        k, p = mask_pairs(models.regions)
         dk, _, away = ws.distances(models.theta, k, p)
         d = np.full(models.regions.shape, np.inf, np.float32)
         d[k, p] = dk + np.where(away, ws.tau, 0.0)

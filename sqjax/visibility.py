@@ -22,6 +22,7 @@ from . import parallel
 from . import rotation as so3
 from .cache import persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
+from .hypotheses import mask_pairs
 from .padding import calls
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 
@@ -47,7 +48,7 @@ def free_space_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndar
         t = np.einsum("mpj,pj->mp", w, v)  # > 0: the model's centre is in front of p
         perp2 = np.einsum("mpj,mpj->mp", w, w) - t * t
         r = radius[rows, None]
-        m, p = np.nonzero((perp2 < r * r) & (t + r > ws.tau))
+        m, p = mask_pairs((perp2 < r * r) & (t + r > ws.tau))
         pairs_m.append(m + rows.start)
         pairs_p.append(p)
     model, point = np.concatenate(pairs_m), np.concatenate(pairs_p)
@@ -120,7 +121,7 @@ def void_violations(ws: Workspace, theta, *, box: bool = False) -> np.ndarray:
         t = np.einsum("mj,qj->mq", d, v)  # along each ray to the model's centre
         perp2 = np.einsum("mj,mj->m", d, d)[:, None] - t * t
         r = radius[rows, None]
-        m, q = np.nonzero((perp2 < r * r) & (t + r > 0))
+        m, q = mask_pairs((perp2 < r * r) & (t + r > 0))
         pairs_m.append(m + rows.start)
         ends.append(o + (t[m, q] + r[m, 0])[:, None] * v[q])  # behind the sphere, on the ray
         dirs.append(v[q])

@@ -60,3 +60,15 @@ def test_bad_method_and_too_many_for_exact():
         select(np.eye(2), "simulated-annealing")
     with pytest.raises(ValueError, match="too many"):
         select_exact(np.eye(20))
+
+
+def test_mask_pairs_are_np_nonzero_of_the_regions():
+    """The (model, point) pairs of region masks, as np.nonzero gives them (row-major), for the kernels."""
+    from sqjax.hypotheses import mask_pairs
+
+    rng = np.random.default_rng(3)
+    for shape in [(0, 7), (1, 1), (5, 0), (37, 19200), (3, 5)]:
+        mask = rng.random(shape) < 0.1
+        k, p = mask_pairs(mask)
+        nk, np_ = np.nonzero(mask)
+        assert np.array_equal(k, nk) and np.array_equal(p, np_) and k.dtype == nk.dtype
