@@ -287,6 +287,8 @@ SUPPORTED_INPUTS = (
 """What `read_input` reads, in words."""
 INPUT_EXTENSIONS = tuple(_FORMATS)
 """The extensions `read_input` reads."""
+MESH_EXTENSIONS = tuple(e for e, h in _FORMATS.items() if h[0] is _MESH)
+"""The extensions that are always meshes, read as their distinct vertices (`read_points`)."""
 
 
 def _handler(path, slot: int, what: str) -> tuple[Path, Any]:

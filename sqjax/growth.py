@@ -41,8 +41,8 @@ def grow(ws: Workspace, models: Models):
     if sel.size == 0:
         return
     grown = grown[sel]
-    new_theta = ws.fit([np.flatnonzero(g) for g in grown], models.theta[act[sel]])
     k, p = mask_pairs(grown)
+    new_theta = ws.fit(split_by_model(p, k, sel.size), models.theta[act[sel]])  # each region's points
     d, _, _ = ws.distances(np.nan_to_num(new_theta), k, p, within=ws.tau)
     inl = d < ws.tau
     kept = np.bincount(k[inl], minlength=sel.size)

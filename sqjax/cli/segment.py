@@ -17,9 +17,6 @@ from pathlib import Path
 from .common import CLIError, camera_arg, depth_scale_arg, one_line, ortho_arg, positive, segment_options
 from .progress import Progress
 
-MESH_SUFFIXES = (".stl", ".obj")
-"""Inputs that are always meshes (read as their distinct vertices, `formats.read_points`)."""
-
 
 def _description() -> str:
     from ..formats import SUPPORTED_INPUTS
@@ -187,8 +184,10 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         try:
             seg = segment(data, options=options, progress=progress)
         except ValueError as e:  # e.g. too few valid points: say which input
+            from ..formats import MESH_EXTENSIONS
+
             msg = one_line(e)
-            if kind == "point_cloud" and Path(input_path or "").suffix.lower() in MESH_SUFFIXES and "points" in msg:
+            if kind == "point_cloud" and Path(input_path or "").suffix.lower() in MESH_EXTENSIONS and "points" in msg:
                 msg += " (a mesh is read as its distinct vertices: sample its surface for more points)"
             raise CLIError(f"{input_path}: {msg}" if input_path else msg) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
