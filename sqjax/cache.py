@@ -61,6 +61,69 @@ def enable_compilation_cache(path=None) -> Path | None:
 
 
 # ----------------------------------------------------------------------------------------------------
+# how the kernels compile
+
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+"""XLA options of every sqjax kernel on CPU: XLA's elemental loop emitters instead of its MLIR fusion
+emitters. Measured 2026-12-04 on the 2-core machine (jaxlib 0.10.2): the multistart fit kernel compiles
+in 3.2 s instead of 4.7 s; the kernels of a first mOSD scene in 16.4 s of XLA instead of 27.4 s, its wall
+22 s instead of 31 s; the time per scene after compile and the fits' costs are the same within the
+machine's drift."""
+
+
+@functools.cache
+def compiler_options() -> dict:
+    """The XLA options sqjax's kernels compile with: `CPU_COMPILER_OPTIONS` on CPU where this XLA knows
+    them (checked once by compiling a one-line function), else none."""
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return {}
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=CPU_COMPILER_OPTIONS).lower(1.0).compile()
+    except Exception:  # an XLA without the option: "No such compile option"
+        return {}
+    return dict(CPU_COMPILER_OPTIONS)
+
+
+class kernel_jit:
+    """`jax.jit(fn, **jit_kwargs)` (with `filter`, `equinox.filter_jit`) compiled with `compiler_options()`.
+
+    The jitted functions are made on the first call (or attribute access: `lower`, `trace`), not at
+    import, so that importing sqjax starts no JAX backend. Called under a transformation (tracers among
+    the arguments), it is a plain nested jit: JAX takes compiler options at the top level only."""
+
+    def __init__(self, fn, *, filter: bool = False, **jit_kwargs):
+        functools.update_wrapper(self, fn)
+        self._fn, self._filter, self._kwargs = fn, filter, jit_kwargs
+        self._jitted: dict = {}
+
+    def _get(self, top: bool = True):
+        if top not in self._jitted:
+            import jax
+
+            options = {"compiler_options": compiler_options(), **self._kwargs} if top else self._kwargs
+            if self._filter:
+                import equinox as eqx
+
+                self._jitted[top] = eqx.filter_jit(self._fn, **options)  # pyright: ignore[reportCallIssue]
+            else:
+                self._jitted[top] = jax.jit(self._fn, **options)
+        return self._jitted[top]
+
+    def __call__(self, *args, **kwargs):
+        import jax
+
+        traced = any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves((args, kwargs)))  # pyright: ignore[reportAttributeAccessIssue]
+        return self._get(not traced)(*args, **kwargs)
+
+    def __getattr__(self, name):  # lower, trace, eval_shape, _cache_size ...
+        if name.startswith("__") or name in ("_fn", "_filter", "_kwargs", "_jitted"):
+            raise AttributeError(name)
+        return getattr(self._get(), name)
+
+
+# ----------------------------------------------------------------------------------------------------
 # traced-and-lowered kernels on disk (jax.export)
 
 _KERNEL_DIR: Path | None = None
@@ -171,7 +234,7 @@ def persistent_kernel(fn):
 
     name = f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', getattr(fn, '__name__', ''))}"
 
-    @functools.wraps(fn)
+    @functools.wraps(fn, updated=())
     def call(*args):
         leaves, tree = jax.tree.flatten(args)
         if any(isinstance(v, jax.core.Tracer) for v in leaves):  # pyright: ignore[reportAttributeAccessIssue]
@@ -210,7 +273,7 @@ def _load(path: Path):
     except OSError:
         return None
     try:
-        return jax.jit(jax.export.deserialize(bytearray(blob)).call)
+        return jax.jit(jax.export.deserialize(bytearray(blob)).call, compiler_options=compiler_options())
     except Exception:  # a corrupt or foreign file: export it again
         return None
 
@@ -235,4 +298,4 @@ def _export(fn, leaves, tree, dynamic, inputs, path: Path):
         os.replace(f.name, path)
     except OSError:
         pass
-    return jax.jit(exported.call)
+    return jax.jit(exported.call, compiler_options=compiler_options())

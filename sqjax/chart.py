@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
-from .cache import persistent_kernel
+from .cache import kernel_jit, persistent_kernel
 from .numerics import to_device
 from .superquadric import Superquadric
 
@@ -91,7 +91,7 @@ def from_fields(fields, epsilon_range, deform: bool):
     return jnp.concatenate(parts, -1), ok
 
 
-@jax.jit
+@kernel_jit
 def _world(theta, centre) -> Superquadric:
     sq = to_superquadric(theta)
     return Superquadric(sq.size, sq.epsilon, sq.rotation, sq.translation + centre, sq.taper, sq.bend)
@@ -110,7 +110,7 @@ def to_world(theta: np.ndarray, centre: np.ndarray) -> Superquadric:
 
 
 @persistent_kernel
-@jax.jit
+@kernel_jit
 def _volumes(theta):
     return to_superquadric(theta).volume
 

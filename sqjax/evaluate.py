@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .cache import kernel_jit
 from .padding import bucket
 from .superquadric import Superquadric, contains, distance
 
@@ -177,7 +178,7 @@ def _iou_pair(a: Superquadric, b: Superquadric, u):
     return jnp.where(union > 0, inter / jnp.maximum(union, 1), 0.0)
 
 
-@functools.partial(jax.jit, static_argnames="n")
+@functools.partial(kernel_jit, static_argnames="n")
 def _iou_kernel(a: Superquadric, b: Superquadric, key, n: int):
     u = jax.random.uniform(key, (n, 3), a.size.dtype)
     return jax.vmap(_iou_pair, in_axes=(0, 0, None))(a, b, u)

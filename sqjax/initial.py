@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
-from .cache import persistent_kernel
+from .cache import kernel_jit, persistent_kernel
 from .numerics import to_device
 from .padding import bucket, pad_rows
 
@@ -181,4 +181,4 @@ def one_view_starts(points: np.ndarray, regions: list, origin: np.ndarray | None
     return np.stack(out)
 
 
-_log_rotations = persistent_kernel(jax.jit(so3.log))
+_log_rotations = persistent_kernel(kernel_jit(so3.log))

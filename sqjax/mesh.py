@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .cache import kernel_jit
 from .superquadric import Superquadric, log_inside_outside, to_model_frame, to_world_frame, world_points
 
 
@@ -70,7 +71,7 @@ def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.
     return pts + noise * rng.standard_normal((n, 3))
 
 
-@jax.jit
+@kernel_jit
 def _onto_surface(sq: Superquadric, points):
     """Move world points along the ray from the centre (undeformed model frame) onto the surface F = 1."""
     x = to_model_frame(sq, points)

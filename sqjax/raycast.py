@@ -8,10 +8,10 @@ core as the kernels) by bisection along the ray, so every valid pixel back-proje
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .cache import kernel_jit
 from .mesh import to_trimesh
 from .padding import bucket
 from .rangeimage import OrthographicCamera, PinholeCamera, RangeImage
@@ -26,7 +26,7 @@ def _intersector(mesh):
     return RayMeshIntersector(mesh)
 
 
-@jax.jit
+@kernel_jit
 def _log_F_deformed(sq: Superquadric, pts):
     return log_inside_outside(to_model_frame(sq, pts.astype(sq.size.dtype)), jnp.log(sq.size), sq.epsilon)
 

@@ -7,9 +7,9 @@ The public ones are jitted (one compile per input shape when called eagerly).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
+from .cache import kernel_jit
 from .numerics import eps
 
 
@@ -26,7 +26,7 @@ def skew(w):
     )
 
 
-@jax.jit
+@kernel_jit
 def exp(w):
     """Rotation vector (..., 3) [rad] -> rotation matrix (..., 3, 3) (Rodrigues)."""
     t2 = jnp.sum(w * w, -1)[..., None, None]
@@ -86,7 +86,7 @@ def _quaternion(R):
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
-@jax.jit
+@kernel_jit
 def log(R):
     """Rotation matrix (..., 3, 3) -> rotation vector (..., 3) with angle in [0, pi].
 
@@ -114,7 +114,7 @@ def _ry(a):
     return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
 
 
-@jax.jit
+@kernel_jit
 def from_euler(angles):
     """ZYZ Euler angles (..., 3) = (phi, theta, psi) [rad] -> R = Rz(phi) Ry(theta) Rz(psi), (..., 3, 3).
 
@@ -124,7 +124,7 @@ def from_euler(angles):
     return _rz(angles[..., 0]) @ _ry(angles[..., 1]) @ _rz(angles[..., 2])
 
 
-@jax.jit
+@kernel_jit
 def to_euler(R):
     """Rotation matrix (..., 3, 3) -> ZYZ Euler angles (..., 3), theta in [0, pi].
 

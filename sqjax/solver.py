@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import dataclasses
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 
-from .cache import persistent_kernel
+from .cache import kernel_jit, persistent_kernel
 from .chart import BEND, LOG_SIZE, NUM_DEFORM, TRANSLATION, from_fields, pack, project, to_superquadric, unpack
 from .initial import initial_states, moment_starts, switched
 from .lm import capped, cost_of, levenberg_marquardt
@@ -177,7 +176,7 @@ def padded_problems(points, mask, theta0, opts):
     return map_problems(points, mask, theta0, opts)[:4]
 
 
-fit_padded = persistent_kernel(eqx.filter_jit(padded_problems))
+fit_padded = persistent_kernel(kernel_jit(padded_problems, filter=True))
 """The batch kernel of segmentation's refits: one compiled call per (K, N, dtype, options), its lowered
 form kept on disk with the compilation cache (`cache.persistent_kernel`)."""
 
@@ -192,7 +191,7 @@ def fit_problems(points, mask, init, opts):
     return (sq.size, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend), cost, conv, dist, weight, init_ok
 
 
-fit_kernel = persistent_kernel(eqx.filter_jit(fit_problems))
+fit_kernel = persistent_kernel(kernel_jit(fit_problems, filter=True))
 """The kernel `fit` calls: one compile per (padded K, padded N, dtype, options, init or not)."""
 
 
@@ -200,12 +199,11 @@ def _split_over_devices(problems):
     """`problems(points, mask, start, opts)` jitted with the problems split over every local CPU device
     (`parallel.shard`; the start, when given, split with them)."""
 
-    @eqx.filter_jit
     def run(points, mask, start, opts):
         body = lambda p, m, s: problems(p, m, s, opts)
         return shard(body, (True, True, start is not None))(points, mask, start)
 
-    return run
+    return kernel_jit(run, filter=True)
 
 
 fit_sharded = _split_over_devices(fit_problems)

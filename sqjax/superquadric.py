@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import rotation as so3
+from .cache import kernel_jit
 from .deformation import bend_points, taper_points, unbend, untaper
 from .numerics import eps, to_device
 
@@ -196,7 +197,7 @@ class Superquadric(eqx.Module):
         return cls.create(arr["size"], **kw)
 
 
-@jax.jit
+@kernel_jit
 def to_model_frame(sq: Superquadric, points):
     """World points (..., 3) -> undeformed model-frame points (..., 3): R^T (p - t), unbend, untaper."""
     x = (points - sq.translation) @ sq.rotation
@@ -204,7 +205,7 @@ def to_model_frame(sq: Superquadric, points):
     return untaper(x, sq.taper, sq.size[..., 2:3])
 
 
-@jax.jit
+@kernel_jit
 def to_world_frame(sq: Superquadric, x):
     """Undeformed model-frame points (..., 3) -> world points: taper, bend, R x + t."""
     return world_points(sq, x)
@@ -335,28 +336,28 @@ def _per_point(fn, sq: Superquadric, points):
 # the public functions of a superquadric and world points (..., 3)
 
 
-@jax.jit
+@kernel_jit
 def inside_outside(sq: Superquadric, points):
     """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside (eq. 5)."""
     x = to_model_frame(sq, points)
     return jnp.exp(log_inside_outside(x, jnp.log(sq.size), sq.epsilon))
 
 
-@jax.jit
+@kernel_jit
 def contains(sq: Superquadric, points):
     """Inside test, (..., 3) -> bool (...)."""
     x = to_model_frame(sq, points)
     return log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0
 
 
-@jax.jit
+@kernel_jit
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
     log_a = jnp.log(sq.size)
     return size_weighted_residual(log_inside_outside(to_model_frame(sq, points), log_a, sq.epsilon), log_a)
 
 
-@jax.jit
+@kernel_jit
 def distance(sq: Superquadric, points):
     """Approximate Euclidean distance to the surface, |F - 1| / |grad F| (eq. 10), (..., 3) -> (...).
 
@@ -366,7 +367,7 @@ def distance(sq: Superquadric, points):
     return _per_point(lambda *a: frame_distance(*a, of_logs=distance_from_log), sq, points)
 
 
-@jax.jit
+@kernel_jit
 def signed_distance(sq: Superquadric, points):
     """The residual `fit` minimises (`FitOptions.residual="distance"`), (..., 3) -> (...): the signed
     first-order distance to the surface through the root form of F (`signed_distance_from_log`),
@@ -386,7 +387,7 @@ def _safe_norm(v):
     return jnp.where(nz[..., 0], m[..., 0] * jnp.sqrt(jnp.where(nz[..., 0], s2, 1.0)), 0.0)
 
 
-@jax.jit
+@kernel_jit
 def radial_distance(sq: Superquadric, points):
     """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...).
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from . import parallel
 from . import rotation as so3
-from .cache import persistent_kernel
+from .cache import kernel_jit, persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .hypotheses import mask_pairs
 from .padding import calls
@@ -145,7 +145,7 @@ _RAY_SAMPLES = 16
 
 
 @persistent_kernel
-@jax.jit
+@kernel_jit
 def _free_space(theta, points, views, point, margin):
     """Whether the model `theta[e]` occupies the free space in front of the point `points[point[e]]`:
     any of `_RAY_SAMPLES` samples on its viewing ray, from `margin[e]` in front of the point back to the
@@ -191,7 +191,7 @@ def _box_chord(theta, points, views, point, margin, limit):
 
 
 @persistent_kernel
-@jax.jit
+@kernel_jit
 def _free_space_box(theta, points, views, point, margin, limit):
     """`_free_space` with the samples on the ray's chord of the model's bounding box, between
     `margin[e]` and `limit[e]` (the camera) back from the point: a bar 40 m long and 5 cm thick across
@@ -202,7 +202,7 @@ def _free_space_box(theta, points, views, point, margin, limit):
 
 
 @persistent_kernel
-@jax.jit
+@kernel_jit
 def _seen_through(theta, points, views, point, depth, limit):
     """Whether the viewing ray of `points[point[e]]`, between the point and `limit[e]` (the camera),
     passes through the model `theta[e]` deeper than `depth[e]` (eq. 10 distance of a sample inside the

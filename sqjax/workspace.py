@@ -19,7 +19,7 @@ import numpy as np
 
 from . import parallel
 from . import rotation as so3
-from .cache import persistent_kernel
+from .cache import kernel_jit, persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
 from .numerics import to_device
@@ -194,7 +194,7 @@ class Workspace:
 
 
 @persistent_kernel
-@jax.jit
+@kernel_jit
 def _pair_distances(theta, points, views, point, enlarge, margin):
     """Eq. 10 distance of `points[point[e]]` to the model `theta[e]`, whether the point lies inside
     that model enlarged (a1..a3 times `enlarge`, plus `margin`), and whether the model's outward

@@ -194,6 +194,32 @@ def test_a_kept_kernel_is_bypassed_under_transformations(kernel_dir):
     assert np.isfinite(np.asarray(g)).all() and not list(kernel_dir.rglob("*.jaxexport"))
 
 
+def test_kernels_compile_with_the_compiler_options_at_the_top_level_only():
+    """`kernel_jit` compiles with `compiler_options()` (XLA's loop emitters on CPU, where this XLA
+    has them) and gives jax.jit's values; under jit, vmap and grad (JAX takes compiler options at the
+    top level only) it is a plain nested jit, with the same values and gradients."""
+    import jax
+    import jax.numpy as jnp
+
+    from sqjax import cache
+
+    def f(x):
+        return jnp.sum(jnp.sin(x) ** 2 * jnp.exp(-x))
+
+    k = cache.kernel_jit(f)
+    options = cache.compiler_options()
+    assert options in ({}, cache.CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else options == {}
+    x = jnp.linspace(-1.0, 2.0, 7)
+    assert k.__name__ == "f" and k.__doc__ == f.__doc__
+    np.testing.assert_allclose(k(x), f(x), rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(k)(x), f(x), rtol=1e-6)
+    np.testing.assert_allclose(jax.grad(k)(x), jax.grad(f)(x), rtol=1e-6)
+    np.testing.assert_allclose(jax.vmap(k)(x[:, None]), jax.vmap(f)(x[:, None]), rtol=1e-6)
+    assert "sine" in k.lower(x).as_text()  # jax.jit's attributes reach through
+    with pytest.raises(Exception, match="compile option"):
+        jax.jit(f, compiler_options={"xla_no_such_option": True})(x)  # what compiler_options() guards
+
+
 def test_default_cache_dir(monkeypatch, tmp_path):
     from sqjax.cache import cache_disabled_by_env, default_cache_dir
 
