@@ -21,7 +21,7 @@ import optimistix as optx
 
 from .cache import kernel_jit, persistent_kernel
 from .chart import BEND, LOG_SIZE, NUM_DEFORM, TRANSLATION, from_fields, pack, project, to_superquadric, unpack
-from .initial import initial_states, moment_starts, switched
+from .initial import bend_starts, initial_states, moment_starts, switched
 from .lm import capped, cost_of, levenberg_marquardt
 from .padding import CHUNK_POINTS
 from .parallel import shard
@@ -81,7 +81,10 @@ def _multistart(points, mask, opts):
 
 def _solve(inputs):
     points, mask, theta0, opts, _ = inputs  # the adjoint appends a while-loop implementation
-    if theta0 is not None:
+    if theta0 is not None and theta0.ndim == 2:  # several warm starts: the best
+        lm = lambda th: levenberg_marquardt(unpack(th, opts.deform), points, mask, opts, opts.max_steps)
+        state, cost, conv = _best(*jax.vmap(lm)(theta0))
+    elif theta0 is not None:
         state, cost, conv = levenberg_marquardt(unpack(theta0, opts.deform), points, mask, opts, opts.max_steps)
     elif opts.multistart:
         state, cost, conv = _multistart(points, mask, opts)
@@ -139,9 +142,12 @@ def fit_one(points, mask, theta0, opts):
         th0 = None if theta0 is None else theta0[: plain.num_params]
         theta_u, aux_u = adjoint.apply(_solve, _stationarity, (pn, mask, th0, plain), frozenset())
         # the deformed model also starts from the undeformed optimum (zero deformation), so that its
-        # gain over it measures what the 4 parameters add, not a better local minimum
+        # gain over it measures what the 4 parameters add, not a better local minimum; and from that
+        # optimum bent along its centre line, each axis in turn (`initial.bend_starts`)
         flat = jnp.concatenate([theta_u, jnp.zeros(NUM_DEFORM, dtype)])
-        nested = adjoint.apply(_solve, _stationarity, (pn, mask, jax.lax.stop_gradient(flat), opts), frozenset())
+        bent = jax.vmap(lambda *s: pack(*s, deform=True))(*bend_starts(unpack(theta_u, False), pn, mask))
+        starts = jax.lax.stop_gradient(jnp.concatenate([flat[None], bent]))
+        nested = adjoint.apply(_solve, _stationarity, (pn, mask, starts, opts), frozenset())
         choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
         theta, (cost, conv, weight) = choose(nested[1][0] < cost, nested, (theta, (cost, conv, weight)))
         theta, (cost, conv, weight) = choose(

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from sqjax import Superquadric, lm, solver
+from sqjax.evaluate import volume_iou_batch
 from sqjax.fitting import FitOptions, fit
 from sqjax.status import Status
 
-from helpers import params, random_problem, volume_iou
+from helpers import params, random_problem, random_rotation, volume_iou
 
 FAST = dict(max_steps=8, multistart=False)  # one start: small kernels for the tests of plumbing
 
@@ -378,3 +379,51 @@ def test_distance_of_a_deformed_model_is_in_world_units(deformation):
     d = np.asarray(signed_distance(sq, jnp.asarray(q, jnp.float32)))
     err = np.abs(d / truth - 1.0)
     assert np.median(err) < 0.05 and np.quantile(err, 0.95) < 0.25, np.quantile(err, [0.5, 0.95])
+
+
+@pytest.mark.parametrize("alpha", [0.0, 2.0, -1.2])
+def test_bend_starts_read_the_bend_from_the_centre_line(alpha):
+    """From an unbent solution in the part's frame, the first of `initial.bend_starts` has the bend of
+    the points' centre line: curvature within 15% and the bending plane within 0.15 rad of the truth
+    (the second-order parabola of the bend, k a3 = 0.6); the other two bend about the other axes."""
+    from sqjax.initial import bend_starts
+    from sqjax.mesh import sample_surface
+
+    k = 0.6 / 1.5
+    sq = Superquadric.create((0.5, 0.4, 1.5), (0.5, 0.8), bend=(k, alpha))
+    pts = jnp.asarray(sample_surface(sq, 3000, seed=1).T, jnp.float32)
+    state = (jnp.log(jnp.array([0.7, 0.6, 1.5])), jnp.array([0.5, 0.8]), jnp.eye(3), jnp.zeros(3), jnp.zeros(4))
+    la, e, R, t, d = bend_starts(state, pts, jnp.ones(pts.shape[1], bool))
+    assert la.shape == (3, 3) and R.shape == (3, 3, 3) and np.all(np.asarray(d[:, :2]) == 0.0)
+    assert abs(float(d[0, 2]) / k - 1.0) < 0.15
+    assert abs(float(jnp.angle(jnp.exp(1j * (d[0, 3] - alpha))))) < 0.15
+    np.testing.assert_allclose(np.asarray(R[0]), np.eye(3))
+
+
+@pytest.mark.slow
+def test_bent_truths_are_recovered_in_any_bending_plane():
+    """https://github.com/sqjax/sqjax/issues/14: one-view points (200, 1% noise) of bent truths drawn as
+    `benchmarks/fit.py --suites deform` draws them are fitted with `deform=True` to volume IoU >= 0.95
+    and their curvature k a3 within 20%. Two problems of that draw (seed 1, the 4th and the 15th) whose
+    fits reached only 0.48 and 0.89 from the unbent optimum and the multistart: at k = 0 the cost does
+    not depend on the bending plane, and LM found no bend out of alpha = 0 (`initial.bend_starts`)."""
+    from sqjax.mesh import sample_surface
+
+    rng = np.random.default_rng(1)
+    truths, pts = [], []
+    for i in range(16):
+        size = np.concatenate([rng.uniform(0.5, 1.0, 2), rng.uniform(1.5, 2.0, 1)])
+        eps, R = rng.uniform(0.3, 1.2, 2), random_rotation(rng)
+        bend = (rng.uniform(0.3, 0.8) / size[2], rng.uniform(-np.pi, np.pi))
+        sq = Superquadric.create(size, eps, rotation=R, bend=bend)
+        view = rng.normal(size=3)
+        view = 10 * view / np.linalg.norm(view)
+        if i in (3, 14):
+            truths.append(sq)
+            pts.append(sample_surface(sq, 200, seed=i, noise=0.01 * size.mean(), viewpoint=view))
+    out = fit(np.stack(pts), deform=True)
+    stacked = jax.tree.map(lambda *v: jnp.stack(v), *truths)
+    iou = np.asarray(volume_iou_batch(stacked, out.superquadric, n=20_000))
+    assert np.all(iou >= 0.95), iou
+    ka = np.asarray(out.superquadric.bend[:, 0] * out.superquadric.size[:, 2])
+    np.testing.assert_allclose(ka, np.asarray(stacked.bend[:, 0] * stacked.size[:, 2]), rtol=0.2)
