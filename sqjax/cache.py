@@ -65,10 +65,19 @@ def enable_compilation_cache(path=None) -> Path | None:
 
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 """XLA options of every sqjax kernel on CPU: XLA's elemental loop emitters instead of its MLIR fusion
-emitters. Measured 2026-12-04 on the 2-core machine (jaxlib 0.10.2): the multistart fit kernel compiles
-in 3.2 s instead of 4.7 s; the kernels of a first mOSD scene in 16.4 s of XLA instead of 27.4 s, its wall
-22 s instead of 31 s; the time per scene after compile and the fits' costs are the same within the
-machine's drift."""
+emitters, which trade run time for compile time. Measured 2026-12-04 on the 2-core machine (jaxlib
+0.10.2, benchmarks/RESULTS.md):
+
+- compile: the multistart fit kernel 3.2 s instead of 4.7 s; a first mOSD scene's kernels 14.6 s of
+  XLA instead of 27.4 s; 59 mOSD scenes in one process with an empty cache 174 s instead of 234 s; the
+  test suite 5.5 minutes instead of 8.5;
+- run time: the fit kernels 15-17% slower in isolation, a segmented scene about 4% (interleaved A/B
+  in two processes, 1.038 and 1.048).
+
+Kernels compile on a user's first run, in every notebook session (the API keeps no cache unless
+`enable_compilation_cache` is called) and on every new batch size of `fit`; 4% of a 2 s scene is
+what 10 s of compile buys back after 125 scenes. A long batch run with a warm cache can take XLA's
+defaults instead: `sqjax.cache.CPU_COMPILER_OPTIONS.clear()` before the first kernel is called."""
 
 
 @functools.cache
