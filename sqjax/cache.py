@@ -1,4 +1,5 @@
-"""JAX's persistent compilation cache for sqjax: compiled kernels kept on disk between processes.
+"""How sqjax's kernels compile (`kernel_jit`, `compiler_options`), and JAX's persistent compilation
+cache for them: compiled kernels kept on disk between processes.
 
 The command line turns it on by default (`--no-cache` or `SQJAX_NO_CACHE=1` turn it off); API users
 call `sqjax.enable_compilation_cache()` once, before the first `segment` / `fit`.
@@ -64,19 +65,20 @@ def enable_compilation_cache(path=None) -> Path | None:
 # how the kernels compile
 
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-"""XLA options of every sqjax kernel on CPU: XLA's elemental loop emitters instead of its MLIR fusion
-emitters, which trade run time for compile time. Measured 2026-12-04 on the 2-core machine (jaxlib
-0.10.2, benchmarks/RESULTS.md):
+"""XLA options of sqjax's kernels on CPU (all but `fit`'s batch kernel, `kernel_jit`): XLA's elemental
+loop emitters instead of its MLIR fusion emitters, which trade run time for compile time. Measured
+2026-12-04 on the 2-core machine (jaxlib 0.10.2, benchmarks/RESULTS.md):
 
 - compile: the multistart fit kernel 3.2 s instead of 4.7 s; a first mOSD scene's kernels 14.6 s of
   XLA instead of 27.4 s; 59 mOSD scenes in one process with an empty cache 174 s instead of 234 s; the
   test suite 5.5 minutes instead of 8.5;
-- run time: the fit kernels 15-17% slower in isolation, a segmented scene about 4% (interleaved A/B
+- run time: the fit kernels 15-24% slower in isolation, a segmented scene about 4% (interleaved A/B
   in two processes, 1.038 and 1.048).
 
-Kernels compile on a user's first run, in every notebook session (the API keeps no cache unless
-`enable_compilation_cache` is called) and on every new batch size of `fit`; 4% of a 2 s scene is
-what 10 s of compile buys back after 125 scenes. A long batch run with a warm cache can take XLA's
+A segmentation compiles about 36 kernels on a user's first run and in every notebook session (the API
+keeps no cache unless `enable_compilation_cache` is called); 4% of a 2 s scene is what 10 s of compile
+buys back after 125 scenes. `fit`'s batch kernel keeps XLA's defaults: one compile per bucket, then
+whole batches through it. A long batch run with a warm cache can take XLA's
 defaults instead: `sqjax.cache.CPU_COMPILER_OPTIONS.clear()` before the first kernel is called."""
 
 
@@ -96,22 +98,30 @@ def compiler_options() -> dict:
 
 
 class kernel_jit:
-    """`jax.jit(fn, **jit_kwargs)` (with `filter`, `equinox.filter_jit`) compiled with `compiler_options()`.
+    """`jax.jit(fn, **jit_kwargs)` (with `filter`, `equinox.filter_jit`) compiled with `compiler_options()`
+    (with `fast_compile`, the default) or with XLA's defaults.
 
-    The jitted functions are made on the first call (or attribute access: `lower`, `trace`), not at
-    import, so that importing sqjax starts no JAX backend. Called under a transformation (tracers among
-    the arguments), it is a plain nested jit: JAX takes compiler options at the top level only."""
+    `fast_compile=False` is for kernels whose run time matters more than their compile: `fit`'s batch
+    kernel, compiled once per bucket and then run on whole batches (the loop emitters cost it 15-24% of
+    its throughput). The jitted functions are made on the first call (or attribute access: `lower`,
+    `trace`), not at import, so that importing sqjax starts no JAX backend. Called under a
+    transformation (tracers among the arguments), it is a plain nested jit: JAX takes compiler options
+    at the top level only."""
 
-    def __init__(self, fn, *, filter: bool = False, **jit_kwargs):
+    def __init__(self, fn, *, filter: bool = False, fast_compile: bool = True, **jit_kwargs):
         functools.update_wrapper(self, fn)
-        self._fn, self._filter, self._kwargs = fn, filter, jit_kwargs
+        self._fn, self._filter, self._fast, self._kwargs = fn, filter, fast_compile, jit_kwargs
         self._jitted: dict = {}
+
+    def options(self) -> dict:
+        """The XLA options this kernel compiles with at the top level."""
+        return compiler_options() if self._fast else {}
 
     def _get(self, top: bool = True):
         if top not in self._jitted:
             import jax
 
-            options = {"compiler_options": compiler_options(), **self._kwargs} if top else self._kwargs
+            options = {"compiler_options": self.options(), **self._kwargs} if top else self._kwargs
             if self._filter:
                 import equinox as eqx
 
@@ -127,7 +137,7 @@ class kernel_jit:
         return self._get(not traced)(*args, **kwargs)
 
     def __getattr__(self, name):  # lower, trace, eval_shape, _cache_size ...
-        if name.startswith("__") or name in ("_fn", "_filter", "_kwargs", "_jitted"):
+        if name.startswith("__") or name in ("_fn", "_filter", "_fast", "_kwargs", "_jitted"):
             raise AttributeError(name)
         return getattr(self._get(), name)
 
@@ -265,8 +275,9 @@ def persistent_kernel(fn):
         if folder is None:
             return fn(*args)
         if key not in _LOADED:
-            _LOADED[key] = _load(folder / f"{key}.jaxexport") or _export(
-                fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport"
+            options = fn.options() if isinstance(fn, kernel_jit) else {}
+            _LOADED[key] = _load(folder / f"{key}.jaxexport", options) or _export(
+                fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport", options
             )
         kernel = _LOADED[key]
         return fn(*args) if kernel is None else kernel(*inputs)
@@ -274,7 +285,7 @@ def persistent_kernel(fn):
     return call
 
 
-def _load(path: Path):
+def _load(path: Path, options: dict):
     import jax
 
     try:
@@ -282,12 +293,12 @@ def _load(path: Path):
     except OSError:
         return None
     try:
-        return jax.jit(jax.export.deserialize(bytearray(blob)).call, compiler_options=compiler_options())
+        return jax.jit(jax.export.deserialize(bytearray(blob)).call, compiler_options=options)
     except Exception:  # a corrupt or foreign file: export it again
         return None
 
 
-def _export(fn, leaves, tree, dynamic, inputs, path: Path):
+def _export(fn, leaves, tree, dynamic, inputs, path: Path, options: dict):
     import jax
 
     def flat(*arrays):
@@ -307,4 +318,4 @@ def _export(fn, leaves, tree, dynamic, inputs, path: Path):
         os.replace(f.name, path)
     except OSError:
         pass
-    return jax.jit(exported.call, compiler_options=compiler_options())
+    return jax.jit(exported.call, compiler_options=options)

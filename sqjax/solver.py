@@ -197,22 +197,23 @@ def fit_problems(points, mask, init, opts):
     return (sq.size, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend), cost, conv, dist, weight, init_ok
 
 
-fit_kernel = persistent_kernel(kernel_jit(fit_problems, filter=True))
-"""The kernel `fit` calls: one compile per (padded K, padded N, dtype, options, init or not)."""
+fit_kernel = persistent_kernel(kernel_jit(fit_problems, filter=True, fast_compile=False))
+"""The kernel `fit` calls: one compile per (padded K, padded N, dtype, options, init or not), with XLA's
+default emitters (`cache.kernel_jit`: run on whole batches, its throughput matters more than its compile)."""
 
 
-def _split_over_devices(problems):
+def _split_over_devices(problems, fast_compile: bool = True):
     """`problems(points, mask, start, opts)` jitted with the problems split over every local CPU device
-    (`parallel.shard`; the start, when given, split with them)."""
+    (`parallel.shard`; the start, when given, split with them); `fast_compile` as `cache.kernel_jit`."""
 
     def run(points, mask, start, opts):
         body = lambda p, m, s: problems(p, m, s, opts)
         return shard(body, (True, True, start is not None))(points, mask, start)
 
-    return kernel_jit(run, filter=True)
+    return kernel_jit(run, filter=True, fast_compile=fast_compile)
 
 
-fit_sharded = _split_over_devices(fit_problems)
+fit_sharded = _split_over_devices(fit_problems, fast_compile=False)
 """`fit_kernel` with the problems split over the CPU devices."""
 fit_padded_sharded = _split_over_devices(padded_problems)
 """`fit_padded` with the problems split over the CPU devices."""

@@ -216,6 +216,12 @@ def test_kernels_compile_with_the_compiler_options_at_the_top_level_only():
     np.testing.assert_allclose(jax.grad(k)(x), jax.grad(f)(x), rtol=1e-6)
     np.testing.assert_allclose(jax.vmap(k)(x[:, None]), jax.vmap(f)(x[:, None]), rtol=1e-6)
     assert "sine" in k.lower(x).as_text()  # jax.jit's attributes reach through
+    assert cache.kernel_jit(f, fast_compile=False).options() == {} and k.options() == options
+    # segmentation's kernels compile fast; `fit`'s batch kernel keeps XLA's defaults for its throughput
+    from sqjax import solver
+
+    assert solver.fit_padded.__wrapped__.options() == options  # pyright: ignore[reportFunctionMemberAccess]
+    assert solver.fit_kernel.__wrapped__.options() == {}  # pyright: ignore[reportFunctionMemberAccess]
     with pytest.raises(Exception, match="compile option"):
         jax.jit(f, compiler_options={"xla_no_such_option": True})(x)  # what compiler_options() guards
 
