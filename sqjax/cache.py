@@ -70,8 +70,7 @@ loop emitters instead of its MLIR fusion emitters, which trade run time for comp
 2026-12-04 on the 2-core machine (jaxlib 0.10.2, benchmarks/RESULTS.md):
 
 - compile: the multistart fit kernel 3.2 s instead of 4.7 s; a first mOSD scene's kernels 14.6 s of
-  XLA instead of 27.4 s; 59 mOSD scenes in one process with an empty cache 174 s instead of 234 s; the
-  test suite 5.5 minutes instead of 8.5;
+  XLA instead of 27.4 s; 59 mOSD scenes in one process with an empty cache 174 s instead of 234 s;
 - run time: the fit kernels 15-24% slower in isolation, a segmented scene about 4% (interleaved A/B
   in two processes, 1.038 and 1.048).
 
