@@ -81,6 +81,12 @@ whole batches through it. A long batch run with a warm cache can take XLA's
 defaults instead: `sqjax.cache.CPU_COMPILER_OPTIONS.clear()` before the first kernel is called."""
 
 
+def with_options(options: dict) -> dict:
+    """`jax.jit`'s keyword for `options`, none when they are empty (a JAX older than `compiler_options`
+    then works as before)."""
+    return {"compiler_options": options} if options else {}
+
+
 @functools.cache
 def compiler_options() -> dict:
     """The XLA options sqjax's kernels compile with: `CPU_COMPILER_OPTIONS` on CPU where this XLA knows
@@ -91,7 +97,7 @@ def compiler_options() -> dict:
         return {}
     try:
         jax.jit(lambda x: x + 1, compiler_options=CPU_COMPILER_OPTIONS).lower(1.0).compile()
-    except Exception:  # an XLA without the option: "No such compile option"
+    except Exception:  # an XLA without the option ("No such compile option"), a jax.jit without the keyword
         return {}
     return dict(CPU_COMPILER_OPTIONS)
 
@@ -120,7 +126,7 @@ class kernel_jit:
         if top not in self._jitted:
             import jax
 
-            options = {"compiler_options": self.options(), **self._kwargs} if top else self._kwargs
+            options = {**with_options(self.options()), **self._kwargs} if top else self._kwargs
             if self._filter:
                 import equinox as eqx
 
@@ -292,7 +298,7 @@ def _load(path: Path, options: dict):
     except OSError:
         return None
     try:
-        return jax.jit(jax.export.deserialize(bytearray(blob)).call, compiler_options=options)
+        return jax.jit(jax.export.deserialize(bytearray(blob)).call, **with_options(options))
     except Exception:  # a corrupt or foreign file: export it again
         return None
 
@@ -317,4 +323,4 @@ def _export(fn, leaves, tree, dynamic, inputs, path: Path, options: dict):
         os.replace(f.name, path)
     except OSError:
         pass
-    return jax.jit(exported.call, compiler_options=options)
+    return jax.jit(exported.call, **with_options(options))

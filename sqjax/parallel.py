@@ -39,9 +39,9 @@ def shard(fn, sharded: tuple[bool, ...]):
 @functools.cache
 def sharded_kernel(fn, sharded: tuple[bool, ...]):
     """`jax.jit(shard(fn, sharded))` with sqjax's compiler options, made once per function and pattern."""
-    from .cache import compiler_options
+    from .cache import compiler_options, with_options
 
-    return jax.jit(shard(fn, sharded), compiler_options=compiler_options())
+    return jax.jit(shard(fn, sharded), **with_options(compiler_options()))
 
 
 def use_cpu_cores(n: int | None = None) -> int:

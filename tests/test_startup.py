@@ -217,6 +217,7 @@ def test_kernels_compile_with_the_compiler_options_at_the_top_level_only():
     np.testing.assert_allclose(jax.vmap(k)(x[:, None]), jax.vmap(f)(x[:, None]), rtol=1e-6)
     assert "sine" in k.lower(x).as_text()  # jax.jit's attributes reach through
     assert cache.kernel_jit(f, fast_compile=False).options() == {} and k.options() == options
+    assert cache.with_options({}) == {}  # no keyword at all: a jax.jit without `compiler_options` works
     # segmentation's kernels compile fast; `fit`'s batch kernel keeps XLA's defaults for its throughput
     from sqjax import solver
 
