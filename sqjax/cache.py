@@ -122,7 +122,8 @@ class kernel_jit:
         """The XLA options this kernel compiles with at the top level."""
         return compiler_options() if self._fast else {}
 
-    def _get(self, top: bool = True):
+    def jitted(self, top: bool = True):
+        """The jitted function: with this kernel's compiler options (`top`), or plain (nested in a trace)."""
         if top not in self._jitted:
             import jax
 
@@ -139,12 +140,12 @@ class kernel_jit:
         import jax
 
         traced = any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves((args, kwargs)))  # pyright: ignore[reportAttributeAccessIssue]
-        return self._get(not traced)(*args, **kwargs)
+        return self.jitted(not traced)(*args, **kwargs)
 
     def __getattr__(self, name):  # lower, trace, eval_shape, _cache_size ...
         if name.startswith("__") or name in ("_fn", "_filter", "_fast", "_kwargs", "_jitted"):
             raise AttributeError(name)
-        return getattr(self._get(), name)
+        return getattr(self.jitted(), name)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -257,12 +258,14 @@ def persistent_kernel(fn):
     import numpy as np
 
     name = f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', getattr(fn, '__name__', ''))}"
+    # the arguments are scanned for tracers here once: a `kernel_jit` is called through its jitted form
+    jitted = fn.jitted if isinstance(fn, kernel_jit) else (lambda top=True: fn)
 
     @functools.wraps(fn, updated=())
     def call(*args):
         leaves, tree = jax.tree.flatten(args)
         if any(isinstance(v, jax.core.Tracer) for v in leaves):  # pyright: ignore[reportAttributeAccessIssue]
-            return fn(*args)
+            return jitted(False)(*args)
         folder = _folder()
         dynamic = [i for i, v in enumerate(leaves) if _is_array(v)]
         inputs = [leaves[i] for i in dynamic]
@@ -278,14 +281,14 @@ def persistent_kernel(fn):
             release_if_crowded()
             _SEEN.add(key)
         if folder is None:
-            return fn(*args)
+            return jitted()(*args)
         if key not in _LOADED:
             options = fn.options() if isinstance(fn, kernel_jit) else {}
             _LOADED[key] = _load(folder / f"{key}.jaxexport", options) or _export(
                 fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport", options
             )
         kernel = _LOADED[key]
-        return fn(*args) if kernel is None else kernel(*inputs)
+        return jitted()(*args) if kernel is None else kernel(*inputs)
 
     return call
 

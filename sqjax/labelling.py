@@ -103,7 +103,7 @@ def propagate(ws: Workspace, theta, best, has):
         front = ~has & (lab >= 0).any(1)
         if not front.any():
             return best, has
-        p, j = np.nonzero(lab[front] >= 0)
+        p, j = mask_pairs(lab[front] >= 0)
         p = np.flatnonzero(front)[p]
         m = lab[p, j]
         key = np.unique(p * len(theta) + m)
