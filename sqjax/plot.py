@@ -29,8 +29,8 @@ def _superquadrics(models) -> list:
 
 def _shade(points: np.ndarray, orthographic: bool) -> np.ndarray:
     """Lambertian-like shading in [0, 1] from an (H, W, 3) point grid (camera light), NaN-free."""
-    du = np.gradient(points, axis=1)
-    dv = np.gradient(points, axis=0)
+    # an image one pixel high or wide has no gradient along that axis: flat shading there
+    du, dv = (np.gradient(points, axis=a) if points.shape[a] > 1 else np.zeros_like(points) for a in (1, 0))
     n = np.cross(du, dv)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -226,3 +226,16 @@ def test_cloud_figure_panels_keep_to_the_data_when_a_model_is_swollen():
     fig = figure_sequence(pts, seg)
     for ax in fig.axes[1:4]:  # the model panels
         assert np.ptp(ax.get_xlim()) < 4.0, ax.get_xlim()
+
+
+@pytest.mark.parametrize("shape", [(1, 16), (12, 1)])
+def test_model_images_of_a_one_pixel_wide_image_are_shaded(shape):
+    """A range image one pixel high or wide (a scan line) segments; its figure's model panel shades
+    with no gradient across the missing axis instead of failing inside numpy."""
+    from sqjax.plot import render_models
+
+    sq = Superquadric.create((0.5, 0.5, 0.5), translation=(0.0, 0.0, 2.0))
+    camera = PinholeCamera(20.0, 20.0, (shape[1] - 1) / 2, (shape[0] - 1) / 2)
+    img, labels = render_models([sq], camera, shape)
+    assert img.shape[:2] == shape and np.all(np.isfinite(img))
+    assert (labels == 1).any()  # the model is drawn, not a blank panel
