@@ -55,6 +55,7 @@ import numpy as np
 
 from .colors import UNEXPLAINED, label_colors, labels_to_id_png, labels_to_png
 from .files import check_writable_dir, dumps, jsonable, write_error
+from .status import Status
 
 SCHEMA_VERSION = 1
 
@@ -219,6 +220,7 @@ def fit_dict(result, *, input_path=None) -> dict:
             **superquadric_dict(result.superquadric),
             "cost": cost,
             "converged": bool(np.asarray(result.converged)),
+            "status": Status.describe(np.asarray(result.status)),
             "num_points": n,
             "rms_distance": float(np.sqrt(np.sum(dist**2) / n)) if n else None,
         }

@@ -256,11 +256,11 @@ def _checked_points(xp, points, mask, dtype):
     if points.ndim not in (2, 3) or points.shape[-1] != 3:
         raise ValueError(f"fit: points must have shape (N, 3) or (K, N, 3), got {tuple(points.shape)}")
     single = points.ndim == 2
+    if 0 in points.shape:
+        raise ValueError(f"fit: empty point set, shape {tuple(points.shape)}")
     if single:
         points = points[None]
     K, N = points.shape[:2]
-    if K == 0 or N == 0:
-        raise ValueError(f"fit: empty point set, shape {tuple(points.shape)}")
     if mask is not None:
         mask = mask.astype(bool) if _is_traced(mask) else np.asarray(mask).astype(bool)
         mask = mask[None] if single else mask

@@ -373,7 +373,8 @@ def read_points(path, *, with_labels: Literal[True]) -> tuple[np.ndarray, np.nda
 @overload
 def read_points(path, *, with_labels: bool) -> np.ndarray | tuple[np.ndarray, np.ndarray | None]: ...
 def read_points(path, *, with_labels: bool = False):
-    """Read a point set: `(N, 3)` float64 xyz in the file's units; rows with NaN / inf are dropped.
+    """Read a point set: `(N, 3)` float64 xyz in the file's units; rows with NaN / inf are dropped
+    (a file whose every row has one is an error).
 
     `.ply` / `.obj` / `.stl` (via trimesh; meshes give their distinct vertex positions), `.xyz` / `.txt`
     (whitespace or comma separated, first 3 columns used, `#` comments), `.npy` `(N, 3)`, `.pcd` (any
@@ -383,6 +384,8 @@ def read_points(path, *, with_labels: bool = False):
     path, fn = _handler(path, 1, "read_points")
     pts, labels = _read(path, fn)
     keep = np.isfinite(pts).all(1)
+    if len(pts) and not keep.any():
+        raise ValueError(f"{path}: no finite point ({len(pts)} rows, each with NaN or inf)")
     pts = np.ascontiguousarray(pts[keep], np.float64)
     return (pts, None if labels is None else labels[keep]) if with_labels else pts
 

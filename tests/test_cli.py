@@ -270,6 +270,12 @@ def _few_points(tmp_path):
     return p
 
 
+def _all_inf(tmp_path):
+    p = tmp_path / "inf.xyz"
+    p.write_text("inf inf inf\n" * 30)
+    return p
+
+
 def _garbage(tmp_path, name):
     p = tmp_path / name
     p.write_bytes(b"\x00\x01 this is not a valid file \xff" * 10)
@@ -287,6 +293,8 @@ ERROR_CASES = {
     "png without camera": lambda t: ["segment", _garbage(t, "depth.png")],
     "too few points to fit": lambda t: ["fit", _few_points(t)],
     "too few points to segment": lambda t: ["segment", _few_points(t)],
+    "no finite point to fit": lambda t: ["fit", _all_inf(t)],
+    "no finite point to segment": lambda t: ["segment", _all_inf(t)],
     "bad option": lambda t: ["segment", _few_points(t), "-o", "nonsense=1"],
     "unknown scene": lambda t: ["render", "nonsense", "--out", t / "x.npz"],
     "render bad extension": lambda t: ["render", "sphere_cylinder", "--out", t / "x.ply"],
@@ -300,6 +308,8 @@ ERROR_CASES = {
 def test_errors_are_one_line(capsys, tmp_path, case):
     code, _, err = run(capsys, *ERROR_CASES[case](tmp_path))
     assert_one_line_error(code, err)
+    if "finite" in case:
+        assert "no finite point" in err and "(1, 0, 3)" not in err
 
 
 def test_evaluate_shape_mismatch(capsys, scene, tmp_path):
@@ -523,6 +533,32 @@ def test_errors_name_the_input(capsys, tmp_path):
         assert_one_line_error(code, err)
         assert str(few) in err and "[Errno" not in err
     assert not (tmp_path / "o").exists()  # the folder made for the results is removed again
+
+
+@pytest.mark.parametrize("kind", ["identical", "collinear"])
+def test_fit_of_points_that_determine_no_superquadric_is_an_error(capsys, tmp_path, kind):
+    """50 copies of one point, or 50 points on a line: the fit's status is DEGENERATE, and the command
+    says so in one line instead of printing a table of meaningless numbers (it used to fail formatting
+    the infinite cost)."""
+    t = np.linspace(0.0, 1.0, 50)[:, None]
+    pts = np.ones((50, 3)) if kind == "identical" else t * np.array([[1.0, 2.0, 3.0]])
+    p = tmp_path / f"{kind}.xyz"
+    np.savetxt(p, pts)
+    code, _, err = run(capsys, "fit", p, "--json", tmp_path / "fit.json")
+    assert_one_line_error(code, err)
+    assert str(p) in err and "identical or collinear" in err and "DEGENERATE" in err
+    assert not (tmp_path / "fit.json").exists()
+
+
+def test_fit_json_says_the_status_flags(capsys, tmp_path):
+    """A fit that converged but leaves flags (an exponent on its bound, a large residual: a Gaussian
+    blob is no superquadric surface) says them on the status line and in the JSON's "status"."""
+    p = tmp_path / "blob.xyz"
+    np.savetxt(p, np.random.default_rng(0).normal(size=(300, 3)) * 0.1 + 5.0)
+    code, out, err = run(capsys, "fit", p, "--json", tmp_path / "fit.json")
+    assert code == 0, err
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert "LARGE_RESIDUAL" in doc["status"] and doc["status"] in out.splitlines()[0]
 
 
 def test_a_mesh_with_too_few_vertices_says_how_it_was_read(capsys, tmp_path):

@@ -33,8 +33,10 @@ kernels are cached on disk (`$XDG_CACHE_HOME/sqjax/jax`, `~/.cache/sqjax/jax` or
      "euler_zyz": [phi, theta, psi],     # rad, R = Rz(phi) Ry(theta) Rz(psi)
      "translation": [x, y, z],           # centre
      "taper": [Kx, Ky], "bend": [k, alpha],   # zero unless --deform
-     "cost": float,                      # G = sum of squared size-weighted residuals (eq. 9)
+     "cost": float,                      # G = sum of squared residuals (FitOptions.residual: the
+                                         # points' distances to the surface by default)
      "converged": bool, "num_points": int,
+     "status": str,                      # Status flags, e.g. "OK", "MAX_STEPS|BOUND_ACTIVE"
      "rms_distance": float}              # root mean square eq. 10 distance of the points
 
 Bad input (missing or damaged file, unsupported format, bad option) prints one line

@@ -40,6 +40,7 @@ def run(args) -> int:
     from ..files import write_json
     from ..fitting import fit
     from ..formats import read_points
+    from ..status import FAILED, Status
 
     path = Path(args.points)
     if args.json:
@@ -53,9 +54,15 @@ def run(args) -> int:
         result = fit(pts, max_steps=args.max_steps, deform=args.deform)
     except ValueError as e:  # e.g. too few valid points: say which input
         raise CLIError(f"{path}: {one_line(e)}") from None
+    code = int(np.asarray(result.status))
+    if code & FAILED:  # no superquadric is determined: an error, not a table of meaningless numbers
+        why = "identical or collinear" if code & Status.DEGENERATE else "no finite fit"
+        raise CLIError(f"{path}: the points determine no superquadric ({why}; status {Status.describe(code)})")
     doc = fit_dict(result, input_path=path)
     deg = np.degrees(doc["euler_zyz"])
-    status = "converged" if doc["converged"] else "NOT converged (raise --max-steps?)"
+    status = ("converged" if doc["converged"] else "NOT converged") + ("" if code == 0 else f": {doc['status']}")
+    if code & Status.MAX_STEPS:
+        status += "; raise --max-steps?"
     print(f"sqjax: fitted one superquadric to {doc['num_points']} points of {path} ({status})")
     print(f"  size a1 a2 a3       {' '.join(f'{v:.4g}' for v in doc['size'])}")
     print(f"  exponents e1 e2     {' '.join(f'{v:.3f}' for v in doc['epsilon'])}")
