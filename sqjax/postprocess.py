@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import hypotheses
 from .chart import volumes
 from .hypotheses import Models, pairs
 from .initial import one_view_starts
@@ -41,34 +42,68 @@ def merge(ws: Workspace, models: Models, tried: dict | None = None) -> Models:
 
 
 def _union_hypotheses(ws: Workspace, models: Models, pairs: list, keep_fraction: float) -> dict:
-    """{pair: (theta, region, distances)} of the unions of `pairs` that pass the merge's tests."""
+    """{pair: (theta, region, distances)} of the unions of `pairs` that pass the merge's tests.
+
+    A union is judged at the volume that agrees best with what the camera saw, as a part is
+    (`part_volumes`): the unbounded fit's extent behind the surface is free (a table's model may hang
+    half a metre below it and pass through the rays of pixels with no return), so a union that fails
+    the visibility test is refitted with the fitter's size bound, from its fit and from
+    `initial.one_view_starts`, and is judged by the candidate that explains both regions and
+    contradicts the fewest observations."""
     unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
     theta, d, score = fit_best(ws, unions, multistart=True)
-    keep, regions, dist = [], [], []
-    for k, ids in enumerate(unions):
-        # One model for the union must explain each of the two (keep_fraction of its points within
-        # tau), not only the union: over a block standing on a cylinder it explains 90% of both
-        # together, at the cost of the smaller one.
-        inl = d[k] < ws.tau
+    both = [
+        k
+        for k in range(len(pairs))
+        if np.isfinite(score[k]) and _explains_both(models, pairs[k], unions[k], d[k] < ws.tau, keep_fraction)
+    ]
+    if not both:
+        return {}
+    # Visibility: the union's model must not fill space the camera saw through (points behind it,
+    # or no return at all) much more than its two parts do; a box under a table, whose side face
+    # holds the legs, explains both pieces but fills the free space between the legs.
+    parts = np.unique(np.array([pairs[k] for k in both]))
+    own = dict(zip(parts.tolist(), _violations(ws, models.theta[parts])))
+    seen = dict(zip(both, _violations(ws, theta[both])))
+
+    def visible(k):  # at most 1 - keep_fraction of the union's explained points more than the parts
         i, j = pairs[k]
-        each = [inl[models.regions[m][ids]].mean() for m in (i, j)]
-        if np.isfinite(score[k]) and min(each) >= keep_fraction:
-            region = np.zeros(ws.P, bool)
-            region[ids[inl]] = True
-            keep.append(k)
-            regions.append(region)
-            dist.append(d[k][inl])
-    if keep:
-        # Visibility: the union's model must not fill space the camera saw through (points behind it,
-        # or no return at all) much more than its two parts do; a box under a table, whose side face
-        # holds the legs, explains both pieces but fills the free space between the legs.
-        parts, pair_of = np.unique(np.array([pairs[k] for k in keep]), return_inverse=True)
-        both = np.concatenate([theta[keep], models.theta[parts]])  # one batch of ray tests for all
-        seen = free_space_violations(ws, both) + void_violations(ws, both)
-        extra = seen[: len(keep)] - seen[len(keep) :][pair_of.reshape(-1, 2)].sum(1)
-        ok = extra <= (1.0 - keep_fraction) * np.array([r.sum() for r in regions])
-        keep, regions, dist = ([x for x, good in zip(a, ok) if good] for a in (keep, regions, dist))
-    return {pairs[k]: (theta[k], r, dk) for k, r, dk in zip(keep, regions, dist)}
+        return seen[k] <= own[i] + own[j] + (1.0 - keep_fraction) * np.sum(d[k] < ws.tau)
+
+    failed = [k for k in both if not visible(k)]
+    if failed:
+        regions = [unions[k] for k in failed]
+        for th0 in [theta[failed], *one_view_starts(ws.host_points, regions, ws.camera)]:
+            th = ws.fit(regions, th0, size_bound=True)
+            ok = np.flatnonzero(np.isfinite(th).all(1))
+            if not ok.size:
+                continue
+            model, point = hypotheses.pairs([regions[i] for i in ok])
+            dist = np.split(ws.distances(th[ok], model, point)[0], np.cumsum([regions[i].size for i in ok])[:-1])
+            for i, dk, v in zip(ok, dist, _violations(ws, th[ok])):
+                k = failed[i]
+                if v < seen[k] and _explains_both(models, pairs[k], unions[k], dk < ws.tau, keep_fraction):
+                    theta[k], d[k], seen[k] = th[i], dk, v
+    out = {}
+    for k in filter(visible, both):
+        inl = d[k] < ws.tau
+        region = np.zeros(ws.P, bool)
+        region[unions[k][inl]] = True
+        out[pairs[k]] = (theta[k], region, d[k][inl])
+    return out
+
+
+def _explains_both(models: Models, pair, union: np.ndarray, inl: np.ndarray, keep_fraction: float) -> bool:
+    """Whether one model for the union (inl: which points of `union` it explains) explains each of the
+    two regions (keep_fraction of its points), not only the union: over a block standing on a cylinder
+    it explains 90% of both together, at the cost of the smaller one."""
+    return min(inl[models.regions[m][union]].mean() for m in pair) >= keep_fraction
+
+
+def _violations(ws: Workspace, theta: np.ndarray) -> np.ndarray:
+    """(M,) observations the models theta (M, 11) contradict: points behind them and pixels with no
+    return whose rays pass through them."""
+    return free_space_violations(ws, theta) + void_violations(ws, theta)
 
 
 MERGE_NEIGHBOURS = 4

@@ -507,6 +507,48 @@ def test_a_table_is_not_merged_with_its_legs():
     assert score.under == 0 and score.correct >= 4, score
 
 
+def test_a_union_is_judged_at_its_bounded_volume(monkeypatch):
+    """A wall seen in two pieces, with no return around it: one slab explains both. A union fit is free
+    behind the surface and beside it where no point constrains it; a slab 2 m deep and about twice the wall's
+    size passes through the empty rays around the wall and fails the merge's visibility test. The merge
+    refits such a union with the size bound and judges it by that volume: the pieces are joined."""
+    import sqjax.postprocess as post
+    from sqjax.hypotheses import Models
+    from sqjax.segmentation import workspace
+    from sqjax.visibility import void_violations
+
+    depth = np.full((40, 40), np.nan)
+    depth[12:28, 6:34] = 5.0
+    ws = workspace(RangeImage(depth, PinholeCamera(40, 40, 19.5, 19.5)), sqjax.SegmentOptions.create(noise=0.01))
+    P = ws.host_points + ws.centre
+    left = P[:, 0] < 0.0
+
+    def slab(x, half_width, half_height, half_depth):  # behind the wall's surface (depth 5), centred frame
+        centre = np.array([x, 0.0, 5.0 + half_depth]) - ws.centre
+        return np.r_[np.log([half_width, half_height, half_depth]), 0.1, 0.1, 0.0, 0.0, 0.0, centre]
+
+    # the wall: x in [-1.69, 1.69], y in [-0.94, 0.94]
+    parts = np.stack([slab(-0.85, 0.86, 0.95, 0.05), slab(0.85, 0.86, 0.95, 0.05)])
+    regions = np.stack([left, ~left])
+    models = Models(
+        parts,
+        regions,
+        [ws.distances(parts[[i]], np.zeros(r.sum(), np.int64), np.flatnonzero(r))[0] for i, r in enumerate(regions)],
+    )
+    swollen = slab(0.0, 3.0, 2.0, 1.0)  # explains the wall with its front face, fills the void around it
+    everyone = np.arange(ws.P)
+    d_swollen = ws.distances(swollen[None], np.zeros(ws.P, np.int64), everyone)[0]
+    assert np.mean(d_swollen < ws.tau) > 0.95  # it explains both pieces
+    assert void_violations(ws, swollen[None])[0] > 0.1 * ws.P  # and the camera saw through it
+    monkeypatch.setattr(
+        post, "fit_best", lambda ws, unions, multistart: (swollen[None].copy(), [d_swollen], np.ones(1))
+    )
+    found = post._union_hypotheses(ws, models, [(0, 1)], keep_fraction=0.9)
+    assert (0, 1) in found
+    theta, region, _ = found[(0, 1)]
+    assert region.mean() > 0.9 and void_violations(ws, theta[None])[0] <= 0.1 * region.sum()
+
+
 def test_part_volumes_are_the_parts_not_what_growth_extrapolated():
     """A table (top and four legs, one view): growth leaves legs metres long whose far ends lie outside
     the view, and a top thicker and wider than the truth. `part_volumes` refits each final model to its
