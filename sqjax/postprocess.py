@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import hypotheses
 from .chart import volumes
 from .hypotheses import Models, pairs
 from .initial import one_view_starts
@@ -41,8 +40,8 @@ def merge(ws: Workspace, models: Models, tried: dict | None = None) -> Models:
     return out
 
 
-def _union_hypotheses(ws: Workspace, models: Models, pairs: list, keep_fraction: float) -> dict:
-    """{pair: (theta, region, distances)} of the unions of `pairs` that pass the merge's tests.
+def _union_hypotheses(ws: Workspace, models: Models, candidates: list, keep_fraction: float) -> dict:
+    """{pair: (theta, region, distances)} of the unions of the `candidates` pairs that pass the merge's tests.
 
     A union is judged at the volume that agrees best with what the camera saw, as a part is
     (`part_volumes`): the unbounded fit's extent behind the surface is free (a table's model may hang
@@ -51,24 +50,24 @@ def _union_hypotheses(ws: Workspace, models: Models, pairs: list, keep_fraction:
     ellipsoid (`initial.one_view_starts`; on every third mOSD scene its refit made 21 unions pass,
     the union fit's own 1, the thick box of the other starts 1), and is judged by the candidate that
     explains both regions and contradicts the fewest observations."""
-    unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in pairs]
+    unions = [np.flatnonzero(models.regions[i] | models.regions[j]) for i, j in candidates]
     theta, d, score = fit_best(ws, unions, multistart=True)
     both = [
         k
-        for k in range(len(pairs))
-        if np.isfinite(score[k]) and _explains_both(models, pairs[k], unions[k], d[k] < ws.tau, keep_fraction)
+        for k in range(len(candidates))
+        if np.isfinite(score[k]) and _explains_both(models, candidates[k], unions[k], d[k] < ws.tau, keep_fraction)
     ]
     if not both:
         return {}
     # Visibility: the union's model must not fill space the camera saw through (points behind it,
     # or no return at all) much more than its two parts do; a box under a table, whose side face
     # holds the legs, explains both pieces but fills the free space between the legs.
-    parts = np.unique(np.array([pairs[k] for k in both]))
+    parts = np.unique(np.array([candidates[k] for k in both]))
     own = dict(zip(parts.tolist(), _violations(ws, models.theta[parts])))
     seen = dict(zip(both, _violations(ws, theta[both])))
 
     def visible(k):  # at most 1 - keep_fraction of the union's explained points more than the parts
-        i, j = pairs[k]
+        i, j = candidates[k]
         return seen[k] <= own[i] + own[j] + (1.0 - keep_fraction) * np.sum(d[k] < ws.tau)
 
     failed = [k for k in both if not visible(k)]
@@ -79,18 +78,18 @@ def _union_hypotheses(ws: Workspace, models: Models, pairs: list, keep_fraction:
             ok = np.flatnonzero(np.isfinite(th).all(1))
             if not ok.size:
                 continue
-            model, point = hypotheses.pairs([regions[i] for i in ok])
+            model, point = pairs([regions[i] for i in ok])
             dist = np.split(ws.distances(th[ok], model, point)[0], np.cumsum([regions[i].size for i in ok])[:-1])
             for i, dk, v in zip(ok, dist, _violations(ws, th[ok])):
                 k = failed[i]
-                if v < seen[k] and _explains_both(models, pairs[k], unions[k], dk < ws.tau, keep_fraction):
+                if v < seen[k] and _explains_both(models, candidates[k], unions[k], dk < ws.tau, keep_fraction):
                     theta[k], d[k], seen[k] = th[i], dk, v
     out = {}
     for k in filter(visible, both):
         inl = d[k] < ws.tau
         region = np.zeros(ws.P, bool)
         region[unions[k][inl]] = True
-        out[pairs[k]] = (theta[k], region, d[k][inl])
+        out[candidates[k]] = (theta[k], region, d[k][inl])
     return out
 
 
