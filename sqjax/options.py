@@ -171,8 +171,8 @@ class GrowthOptions:
     86.3% (complex 73.4%), meshes 57.1% but 83.1% at T = 0.5, multi-part 94.9% (IoU 0.84);
     `admit_factor` 2 mOSD 87.0% (table 98%), meshes 61.0%, multi-part 94.1% (IoU 0.85), 4 mOSD 84.9%,
     meshes 50.6%; `keep_fraction` 0.95 mOSD 85.6% (cylindric 76.2%), multi-part 97.1% (IoU 0.88),
-    clouds 76.4%, 0.85 mOSD 87.7%, multi-part 93.4% (IoU 0.84). Each within the benchmark's spread on
-    most suites and worse beyond it on one: no change earns its place.
+    clouds 76.4%, 0.85 mOSD 87.7%, multi-part 93.4% (IoU 0.84). None is better beyond the benchmark's
+    spread on every suite, and each is worse on at least one: the defaults stay.
     - `max_points`: a region is subsampled (evenly, in index order) to at most this many points for
       its refit; 256 over-determine the 11 parameters more than 20 times. Measured over every suite
       (benchmarks/RESULTS.md, 2026-12-03, against 512): mOSD 86.7% -> 88.8% correct, multi-part
