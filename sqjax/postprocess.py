@@ -63,8 +63,8 @@ def _union_hypotheses(ws: Workspace, models: Models, candidates: list, keep_frac
     # or no return at all) much more than its two parts do; a box under a table, whose side face
     # holds the legs, explains both pieces but fills the free space between the legs.
     parts = np.unique(np.array([candidates[k] for k in both]))
-    own = dict(zip(parts.tolist(), _violations(ws, models.theta[parts])))
-    seen = dict(zip(both, _violations(ws, theta[both])))
+    counts = _violations(ws, np.concatenate([theta[both], models.theta[parts]]))  # one batch of ray tests
+    seen, own = dict(zip(both, counts)), dict(zip(parts.tolist(), counts[len(both) :]))
 
     def visible(k):  # at most 1 - keep_fraction of the union's explained points more than the parts
         i, j = candidates[k]
@@ -72,18 +72,17 @@ def _union_hypotheses(ws: Workspace, models: Models, candidates: list, keep_frac
 
     failed = [k for k in both if not visible(k)]
     if failed:
-        regions = [unions[k] for k in failed]
-        for th0 in (theta[failed], one_view_starts(ws.host_points, regions, ws.camera)[0]):
-            th = ws.fit(regions, th0, size_bound=True)
-            ok = np.flatnonzero(np.isfinite(th).all(1))
-            if not ok.size:
-                continue
-            model, point = pairs([regions[i] for i in ok])
-            dist = np.split(ws.distances(th[ok], model, point)[0], np.cumsum([regions[i].size for i in ok])[:-1])
-            for i, dk, v in zip(ok, dist, _violations(ws, th[ok])):
-                k = failed[i]
-                if v < seen[k] and _explains_both(models, candidates[k], unions[k], dk < ws.tau, keep_fraction):
-                    theta[k], d[k], seen[k] = th[i], dk, v
+        # both starts of every failed union in one call of each kernel: the fit, the distances, the rays
+        regions = [unions[k] for k in failed] * 2
+        starts = np.concatenate([theta[failed], one_view_starts(ws.host_points, regions[: len(failed)], ws.camera)[0]])
+        th = ws.fit(regions, starts, size_bound=True)
+        ok = np.flatnonzero(np.isfinite(th).all(1))
+        model, point = pairs([regions[i] for i in ok])
+        dist = np.split(ws.distances(th[ok], model, point)[0], np.cumsum([regions[i].size for i in ok])[:-1])
+        for i, dk, v in zip(ok, dist, _violations(ws, th[ok])):
+            k = failed[i % len(failed)]
+            if v < seen[k] and _explains_both(models, candidates[k], unions[k], dk < ws.tau, keep_fraction):
+                theta[k], d[k], seen[k] = th[i], dk, v
     out = {}
     for k in filter(visible, both):
         inl = d[k] < ws.tau
@@ -100,10 +99,11 @@ def _explains_both(models: Models, pair, union: np.ndarray, inl: np.ndarray, kee
     return min(inl[models.regions[m][union]].mean() for m in pair) >= keep_fraction
 
 
-def _violations(ws: Workspace, theta: np.ndarray) -> np.ndarray:
+def _violations(ws: Workspace, theta: np.ndarray, box: bool = False) -> np.ndarray:
     """(M,) observations the models theta (M, 11) contradict: points behind them and pixels with no
-    return whose rays pass through them."""
-    return free_space_violations(ws, theta) + void_violations(ws, theta)
+    return whose rays pass through them (`box`: sampled on the bounding box's chord, see
+    `visibility.free_space_violations`)."""
+    return free_space_violations(ws, theta, box=box) + void_violations(ws, theta, box=box)
 
 
 MERGE_NEIGHBOURS = 4
@@ -180,11 +180,7 @@ def part_volumes(ws: Workspace, models: Models, labels: np.ndarray) -> np.ndarra
         ok = np.isfinite(th).all(1, keepdims=True)
         cands[i] = th = np.where(ok, th, growth)
         d, _, _ = ws.distances(th, model, point)
-        agree = (
-            np.bincount(model, d < ws.tau, len(use))
-            - free_space_violations(ws, th, box=True)
-            - void_violations(ws, th, box=True)
-        )
+        agree = np.bincount(model, d < ws.tau, len(use)) - _violations(ws, th, box=True)
         score.append(np.where(ok.ravel(), agree, -np.inf))
     score, stack = np.array(score), np.concatenate(cands)
     C, K = score.shape
