@@ -1,10 +1,11 @@
 """The label image (the paper's output: pixel -> model or none) and the parts it names.
 
-Each explained pixel goes to its nearest final model (`label_image`); with `ExtraOptions.propagate` the
-surface the models leave unexplained is labelled too (`propagate`). An image segmented at a working
-resolution is labelled at its own by the final models (`label_full`), and a cloud segmented on a
-working subset of its points is labelled in full likewise (`label_cloud`). Every part owns labelled
-pixels: label i + 1 is `parts[i]`.
+Each explained pixel goes to its nearest final model (`label_image`), and an island of a label that
+another part encloses and explains goes to that part; with `ExtraOptions.propagate` the surface the
+models leave unexplained is labelled too (`propagate`). An image segmented at a working resolution is
+labelled at its own by the final models (`label_full`), and a cloud segmented on a working subset of
+its points is labelled in full likewise (`label_cloud`). Every part owns labelled pixels: label i + 1
+is `parts[i]`.
 """
 
 from __future__ import annotations
@@ -77,6 +78,7 @@ def label_image(ws: Workspace, models: Models) -> np.ndarray:
                 moved = np.isfinite(alt.min(0))
                 near[i, piece[moved]] = np.inf
                 best[piece[moved]] = np.argmin(alt[:, moved], 0)
+        _join_islands(ws, best, has, near)
         if ws.opts.extras.propagate:
             best, has = propagate(ws, models.theta, best, has)
         # A model whose every pixel went to a nearer one is not a part of the label image: drop it, so
@@ -86,6 +88,29 @@ def label_image(ws: Workspace, models: Models) -> np.ndarray:
         flat[ws.dom.index[has]] = relabel[best[has] + 1]
         models.take(owns)
     return flat.reshape(ws.dom.shape)
+
+
+def _join_islands(ws: Workspace, best: np.ndarray, has: np.ndarray, near: np.ndarray) -> None:
+    """Give each island of a label to the part around it, in place (best (P,) model per point, has
+    (P,) bool, near (M, P) the smoothed distances, inf where a model does not explain a point).
+
+    Growth makes every region connected, but nearest-model labels need not be: where two selected
+    models nearly coincide (a lid's model continuing the body's surface) the nearer one alternates in
+    blobs. A piece of model i's label other than its largest, enclosed by the label of one model j
+    (every neighbour outside the piece is labelled j: no depth discontinuity, image border or
+    unlabelled point on its rim) and explained by j everywhere, lies on j's part: it goes to j."""
+    nb = ws.dom.neighbours
+    lab = np.where(has, best, -1)
+    for i in range(near.shape[0]):
+        pieces = free_components(lab == i, nb, 1)
+        if len(pieces) < 2:
+            continue
+        for piece in sorted(pieces, key=len)[:-1]:
+            rim = nb[piece].ravel()
+            around = np.unique(lab[rim[rim >= 0]])
+            around = around[(around >= 0) & (around != i)]
+            if around.size == 1 and np.isfinite(near[around[0], piece]).all():
+                best[piece] = lab[piece] = around[0]
 
 
 def propagate(ws: Workspace, theta, best, has):

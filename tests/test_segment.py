@@ -742,3 +742,32 @@ def test_a_model_whose_own_points_cannot_determine_it_is_pruned():
     assert prune_redundant(models, 0.2) == 0  # every share is exclusive: the share rule keeps all
     assert prune_redundant(models, 0.2, min_points=22) == 1
     assert models.regions.sum(1).tolist() == [900, 40]
+
+
+def test_an_island_of_a_label_goes_to_the_part_around_it():
+    """Where two models nearly coincide, nearest-model labels alternate in blobs. A piece of model 1's
+    label enclosed by model 0's label and explained by model 0 is model 0's surface; model 1's largest
+    piece stays, and so does an island that model 0 does not explain everywhere or that touches a third
+    label."""
+    from sqjax.labelling import _join_islands
+    from sqjax.segmentation import workspace
+
+    image = RangeImage(np.full((24, 24), 5.0), PinholeCamera(24, 24, 11.5, 11.5))
+    ws = workspace(image, sqjax.SegmentOptions.create(noise=0.01))
+    grid = np.zeros((24, 24), np.int64)
+    grid[:, :6] = 1  # model 1's own piece, along the border
+    grid[10:13, 14:17] = 1  # an island inside model 0's label
+    grid[2:4, 14:16] = 1  # an island that model 0 does not explain at one pixel
+    grid[18:21, 12:15] = 1  # an island touching model 2's label
+    grid[18:21, 15:18] = 2
+    best = grid.ravel()[ws.dom.index].copy()
+    has = np.ones(ws.P, bool)
+    near = np.zeros((3, ws.P))
+    near[2] = np.where(best == 2, 0.0, np.inf)
+    near[0, np.ravel_multi_index((2, 14), (24, 24))] = np.inf  # the pixels' flat index = their point index
+    _join_islands(ws, best, has, near)
+    out = best.reshape(24, 24)
+    assert (out[:, :6] == 1).all()
+    assert (out[10:13, 14:17] == 0).all()
+    assert (out[2:4, 14:16] == 1).all() and (out[18:21, 12:15] == 1).all()
+    assert np.array_equal(out[grid != 1], grid[grid != 1])
