@@ -228,9 +228,21 @@ def _text_points(path):
 
 def _npy_points(path):
     pts = _load_npy(path)
-    if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
-        raise ValueError(f"points must be a numeric (N, 3) array, got {pts.dtype} of shape {pts.shape}")
-    return pts.astype(np.float64), None
+    if not (_cloud_shape(pts.shape) and np.issubdtype(pts.dtype, np.number)):
+        raise ValueError(
+            f"points must be a numeric (N, 3) array (x y z, up to {_MAX_COLUMNS - 3} more columns), got "
+            f"{pts.dtype} of shape {pts.shape}"
+        )
+    return pts[:, :3].astype(np.float64), None
+
+
+_MAX_COLUMNS = 7
+"""A 2-D .npy with 3 to this many columns is a point set (x y z, then intensity, colour or normals, as
+the text formats' first three columns are used): no depth image is 7 pixels wide."""
+
+
+def _cloud_shape(shape) -> bool:
+    return len(shape) == 2 and 3 <= shape[1] <= _MAX_COLUMNS
 
 
 def _write_ply(path, pts):
@@ -274,7 +286,7 @@ def _npy_holds_points(path) -> bool:
         a = np.load(path, mmap_mode="r", allow_pickle=False)
     except Exception:  # damaged files: the reader reports them
         return False
-    return a.ndim == 2 and a.shape[1] == 3
+    return _cloud_shape(a.shape)
 
 
 # extensions `_FORMATS` reads both ways -> does this file hold a point set rather than a range image?
@@ -377,17 +389,25 @@ def read_points(path, *, with_labels: bool = False):
     (a file whose every row has one is an error).
 
     `.ply` / `.obj` / `.stl` (via trimesh; meshes give their distinct vertex positions), `.xyz` / `.txt`
-    (whitespace or comma separated, first 3 columns used, `#` comments), `.npy` `(N, 3)`, `.pcd` (any
-    organisation). With `with_labels=True` returns `(points, labels)`: `(N,)` int64 from a PCD `label`
-    field, else None. Raises FileNotFoundError / ValueError naming the file.
+    (whitespace or comma separated, first 3 columns used, `#` comments), `.npy` `(N, 3)` (to `(N, 7)`,
+    first 3 columns used), `.pcd` (any organisation). With `with_labels=True` returns `(points,
+    labels)`: `(N,)` int64 from a PCD `label` field, else None. Raises FileNotFoundError / ValueError
+    naming the file. `read_input` (what `sqjax segment` reads) keeps the NaN rows instead.
     """
-    path, fn = _handler(path, 1, "read_points")
-    pts, labels = _read(path, fn)
+    pts, labels = read_point_rows(path)
     keep = np.isfinite(pts).all(1)
-    if len(pts) and not keep.any():
-        raise ValueError(f"{path}: no finite point ({len(pts)} rows, each with NaN or inf)")
     pts = np.ascontiguousarray(pts[keep], np.float64)
     return (pts, None if labels is None else labels[keep]) if with_labels else pts
+
+
+def read_point_rows(path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every row of a point file, NaN / inf ones included ((N, 3) float64, labels or None); a file whose
+    every row has one is an error."""
+    path, fn = _handler(path, 1, "read_points")
+    pts, labels = _read(path, fn)
+    if len(pts) and not np.isfinite(pts).all(1).any():
+        raise ValueError(f"{path}: no finite point ({len(pts)} rows, each with NaN or inf)")
+    return np.asarray(pts, np.float64), labels
 
 
 def write_range_image(path, image: RangeImage, *, data: str = "binary", depth_scale: float = 1.0) -> None:
@@ -431,7 +451,9 @@ def read_input(
     """Read a file as `sqjax segment` does: `(RangeImage, "range_image")` or `((P, 3) points, "point_cloud")`.
 
     The extension decides (`SUPPORTED_INPUTS`); a `.pcd` is a range image when organised (HEIGHT > 1)
-    and a `.npy` a point set when `(N, 3)`, unless a camera is given: then both are range images.
+    and a `.npy` a point set when `(N, 3)` (to `(N, 7)`: x y z first), unless a camera is given: then
+    both are range images. A point set keeps every row of the file (NaN ones too, which `segment`
+    leaves unlabelled), so that labels[i] belongs to row i.
     `camera`: a `PinholeCamera` (overrides a stored one); `ortho`: `[pixel_size]` or `[pixel_size, cx,
     cy]` (an `OrthographicCamera`, centred on the image when cx, cy are not given); `intrinsics`: a JSON
     file of pinhole intrinsics (`read_intrinsics`); `color`: a colour image registered to the depth
@@ -458,7 +480,7 @@ def read_input(
             raise ValueError(f"{path}: --camera / --ortho apply to range images, and this is a point cloud")
         if color is not None:
             raise ValueError(f"{path}: --color applies to range images, and this is a point cloud")
-        pts = read_points(path)
+        pts = read_point_rows(path)[0]  # every row: labels[i] belongs to the file's row i (NaN rows get 0)
         return (pts / depth_scale if depth_scale is not None else pts), "point_cloud"
     if ext in _NO_CAMERA and not has_camera:
         raise ValueError(

@@ -207,6 +207,26 @@ def test_segment_point_cloud(capsys, scene, tmp_path):
     assert (out / "figure.png").exists() and (out / "parts.glb").exists()
 
 
+def test_cloud_labels_belong_to_the_files_rows(capsys, scene, tmp_path):
+    """labels.npy has one label per row of the input file: a NaN row gets 0 and the rows after it keep
+    their places; a (N, 6) .npy (x y z r g b) is a cloud, read by its first three columns."""
+    image = read_range_image(scene)
+    pts = image.points[image.valid]
+    holed = pts.copy()
+    holed[::50] = np.nan
+    np.savetxt(tmp_path / "holed.txt", holed)
+    np.save(tmp_path / "rgb.npy", np.concatenate([pts, np.full((len(pts), 3), 128.0)], 1))
+    for name in ("holed.txt", "rgb.npy"):
+        out = tmp_path / name.replace(".", "_")
+        code, _, err = run(capsys, "segment", tmp_path / name, "--out", out, "-o", "window=30", "--no-figure")
+        assert code == 0, err
+        labels = np.load(out / "labels.npy")
+        assert json.loads((out / "models.json").read_text())["input"]["kind"] == "point_cloud"
+        assert labels.shape == (len(pts),)
+        if name == "holed.txt":
+            assert np.all(labels[::50] == 0) and (labels[1::50] > 0).mean() > 0.9
+
+
 # ----------------------------------------------------------------------------------------------------
 # demo, evaluate, fit
 

@@ -197,6 +197,24 @@ def test_points_text_variants_and_nan(tmp_path):
     assert read_points(tmp_path / "e.txt").shape == (0, 3)
 
 
+def test_read_input_keeps_every_row_of_a_cloud(tmp_path):
+    """`read_points` drops NaN rows; `read_input` (what `sqjax segment` reads) keeps them, so that the
+    labels of a cloud belong to the file's rows. A .npy of 3 to 7 columns is a cloud (x y z first)."""
+    from sqjax.formats import read_input
+
+    (tmp_path / "a.txt").write_text("1 2 3\nnan 0 0\n4 5 6\n")
+    assert read_points(tmp_path / "a.txt").shape == (2, 3)
+    pts, kind = read_input(tmp_path / "a.txt")
+    assert kind == "point_cloud" and pts.shape == (3, 3) and np.isnan(pts[1, 0]) and pts[2, 0] == 4
+    xyzrgb = np.random.default_rng(0).normal(size=(20, 6))
+    np.save(tmp_path / "c.npy", xyzrgb)
+    assert np.array_equal(read_input(tmp_path / "c.npy")[0], xyzrgb[:, :3])
+    assert np.array_equal(read_points(tmp_path / "c.npy"), xyzrgb[:, :3])
+    np.save(tmp_path / "d.npy", np.ones((20, 8)))  # 8 columns: a depth image, which needs a camera
+    with pytest.raises(ValueError, match="stores no camera"):
+        read_input(tmp_path / "d.npy")
+
+
 def test_binary_compressed_pcd(tmp_path):
     h, w = 3, 4
     u, v = np.meshgrid(np.arange(w), np.arange(h))
@@ -443,7 +461,7 @@ def test_damaged_npz_and_npy(tmp_path):
 
 def test_bad_arrays(tmp_path):
     np.save(tmp_path / "cube.npy", np.zeros((2, 3, 4)))
-    np.save(tmp_path / "pts4.npy", np.zeros((5, 4)))
+    np.save(tmp_path / "pts2.npy", np.zeros((5, 2)))
     np.savez(tmp_path / "nodepth.npz", d=np.zeros((2, 2)))
     np.savez(tmp_path / "halfcam.npz", depth=np.ones((2, 2)), fx=1.0, fy=1.0)
     np.savez(tmp_path / "badcam.npz", depth=np.ones((2, 2)), fx=-1.0, fy=1.0, cx=0.0, cy=0.0)
@@ -464,8 +482,8 @@ def test_bad_arrays(tmp_path):
     for name, msg in cases:
         with pytest.raises(ValueError, match=f"{name}.*{msg}"):
             read_range_image(tmp_path / name, camera=None if name.endswith(".npz") else CAM)
-    with pytest.raises(ValueError, match=r"pts4\.npy.*\(N, 3\)"):
-        read_points(tmp_path / "pts4.npy")
+    with pytest.raises(ValueError, match=r"pts2\.npy.*\(N, 3\)"):
+        read_points(tmp_path / "pts2.npy")
     (tmp_path / "two.txt").write_text("1 2\n3 4\n")
     (tmp_path / "words.xyz").write_text("x y z\n1 2 3\n")
     for name in ("two.txt", "words.xyz"):

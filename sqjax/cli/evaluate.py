@@ -42,7 +42,7 @@ def _read_labels(path: Path):
 def _read_truth_labels(path: Path):
     import numpy as np
 
-    from ..formats import read_points, read_range_image
+    from ..formats import read_point_rows, read_range_image
     from ..pcd import pcd_height
 
     ext = path.suffix.lower()
@@ -61,8 +61,9 @@ def _read_truth_labels(path: Path):
     if ext == ".pcd":
         if (pcd_height(path) or 0) > 1:
             labels = read_range_image(path).labels
-        else:
-            labels = read_points(path, with_labels=True)[1]
+        else:  # per row of the file, as `sqjax segment` labels it (a NaN row is no point: 0)
+            pts, labels = read_point_rows(path)
+            labels = None if labels is None else np.where(np.isfinite(pts).all(1), labels, 0)
         if labels is None:
             raise CLIError(f"{path}: the PCD has no 'label' field")
         return labels
