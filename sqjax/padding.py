@@ -16,6 +16,15 @@ CHUNK_POINTS = 4096
 """On CPU the fitter fits `max(1, CHUNK_POINTS // N)` problems of N points at a time (`solver.map_problems`):
 a chunk's points and every intermediate of its LM steps then stay in cache."""
 
+MULTISTART_CANDIDATES = 256
+"""On CPU the multistart fits at most this many candidates at a time (problems x starting candidates in
+one vmap), fewer problems than `CHUNK_POINTS` allows when the candidates are many. 32 problems of 18
+candidates (576) in one vmap on each of two CPU devices (`parallel`) left XLA's runtime waiting
+forever, every thread idle (jax 0.10.2, N = 32 to 128 points; 24 problems per device ran, and so did
+one device with any number): a union fit of the merge between small parts, or `fit()` of 64 problems
+with `use_cpu_cores(2)`. 14 problems of 18 (252): fits/s unchanged within the machine's drift (1
+device, 2026-12-04: N = 128 310 vs 330, N = 256 176-189 vs 182 before)."""
+
 ACCELERATOR_BATCHES = (1, 4, 16, 32, 64)
 """Problems per call of the fit kernel on an accelerator, for callers whose count moves (`fit_call_sizes`)."""
 

@@ -23,7 +23,7 @@ from .cache import kernel_jit, persistent_kernel
 from .chart import BEND, LOG_SIZE, NUM_DEFORM, TRANSLATION, from_fields, pack, project, to_superquadric, unpack
 from .initial import bend_starts, initial_states, moment_starts, switched
 from .lm import capped, cost_of, levenberg_marquardt
-from .padding import CHUNK_POINTS
+from .padding import CHUNK_POINTS, MULTISTART_CANDIDATES
 from .parallel import shard
 from .robust import reweighted, robust_scores
 from .superquadric import distance
@@ -171,7 +171,10 @@ def map_problems(points, mask, theta0, opts):
     K, N = points.shape[:2]
     if jax.default_backend() != "cpu":
         return jax.vmap(fit_one, in_axes=(0, 0, None if theta0 is None else 0, None))(points, mask, theta0, opts)
-    chunk = min(K, max(1, CHUNK_POINTS // N))
+    chunk = max(1, CHUNK_POINTS // N)
+    if theta0 is None and opts.multistart:  # its candidates run side by side (on the screened points)
+        chunk = min(chunk, max(1, MULTISTART_CANDIDATES // opts.num_candidates))
+    chunk = min(K, chunk)
     return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts), (points, mask, theta0), batch_size=chunk)
 
 

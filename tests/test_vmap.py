@@ -97,3 +97,31 @@ def test_two_cpu_devices_give_identical_results():
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+
+
+_MULTISTART_TWO_DEVICES = textwrap.dedent("""
+    import jax, numpy as np
+    import sqjax.parallel as parallel
+    from sqjax.fitting import FitOptions, fit
+    assert jax.device_count() == 2
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(64, 96, 3)) * np.array([1.0, 0.6, 0.3])
+    opts = FitOptions(max_steps=2, robust=False)  # the 18 starting candidates of the multistart
+    sharded = fit(pts, options=opts)
+    parallel.splits = lambda K: False
+    single = fit(pts, options=opts)
+    assert np.isfinite(np.asarray(sharded.cost)).all()
+    a, b = np.asarray(sharded.cost), np.asarray(single.cost)  # chunked differently: rounding only
+    assert np.allclose(a, b, rtol=1e-3, atol=1e-6 * np.max(b)), np.max(np.abs(a - b) / b)
+    print("ok")
+""")
+
+
+def test_a_large_multistart_batch_over_two_devices_finishes():
+    """64 problems of 18 candidates split over two CPU devices: in one vmap of 32 problems per device
+    XLA's runtime waited forever (`padding.MULTISTART_CANDIDATES`); now it finishes, as on one device."""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run(
+        [sys.executable, "-c", _MULTISTART_TWO_DEVICES], env=env, capture_output=True, text=True, timeout=180
+    )
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
