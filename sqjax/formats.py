@@ -289,6 +289,14 @@ def _npy_holds_points(path) -> bool:
     return _cloud_shape(a.shape)
 
 
+def _npy_shape(path) -> tuple | None:
+    """The shape of a plain .npy array (None for a pickled or damaged file: the reader reports those)."""
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False).shape
+    except Exception:
+        return None
+
+
 # extensions `_FORMATS` reads both ways -> does this file hold a point set rather than a range image?
 _HOLDS_POINTS = {".npy": _npy_holds_points, ".pcd": lambda p: (pcd_height(p) or 0) <= 1}
 _NO_CAMERA = (".npy", ".png")  # range images that store no camera
@@ -482,6 +490,9 @@ def read_input(
             raise ValueError(f"{path}: --color applies to range images, and this is a point cloud")
         pts = read_point_rows(path)[0]  # every row: labels[i] belongs to the file's row i (NaN rows get 0)
         return (pts / depth_scale if depth_scale is not None else pts), "point_cloud"
+    shape = _npy_shape(path) if ext == ".npy" else None
+    if shape is not None and len(shape) != 2:
+        raise ValueError(f"{path}: holds an array of shape {shape}: neither a depth image (H, W) nor points (N, 3)")
     if ext in _NO_CAMERA and not has_camera:
         raise ValueError(
             f"{path}: a {ext} depth image stores no camera; pass --intrinsics FILE.json, "

@@ -213,6 +213,9 @@ def test_read_input_keeps_every_row_of_a_cloud(tmp_path):
     np.save(tmp_path / "d.npy", np.ones((20, 8)))  # 8 columns: a depth image, which needs a camera
     with pytest.raises(ValueError, match="stores no camera"):
         read_input(tmp_path / "d.npy")
+    np.save(tmp_path / "e.npy", np.ones((4, 5, 6)))  # neither: the shape is named, not the camera
+    with pytest.raises(ValueError, match=r"e\.npy: holds an array of shape \(4, 5, 6\)"):
+        read_input(tmp_path / "e.npy")
 
 
 def test_binary_compressed_pcd(tmp_path):
