@@ -507,6 +507,48 @@ def test_a_table_is_not_merged_with_its_legs():
     assert score.under == 0 and score.correct >= 4, score
 
 
+def test_a_cup_seen_into_is_one_union():
+    """A thin-walled cup (a tube with a bottom) on a table, seen from 35 degrees above: the camera sees
+    its inner wall and bottom through its opening, that is through the solid cylinder that describes
+    the cup, so visibility alone refuses to explain the inside by the cup's model and the cup stays
+    two parts, its outside and its inside. The merge judges a union that the camera sees mostly from
+    outside as hollow (`postprocess._hollow`): the cup's two pieces are joined. A union of the table
+    with either piece (a box whose far faces would explain the table, seen through it) is refused."""
+    import trimesh
+
+    import sqjax.postprocess as post
+    from sqjax.hypotheses import Models
+    from sqjax.raycast import render
+    from sqjax.scenes import _rx, default_camera
+    from sqjax.segmentation import workspace
+
+    turn = _rx(np.radians(35)) @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # z up -> camera
+
+    def placed(mesh, z):
+        mesh.apply_translation((0.0, 0.0, z))
+        mesh.vertices = np.asarray(mesh.vertices) @ turn.T + (0.0, 0.0, 6.0)
+        return mesh
+
+    wall = placed(trimesh.creation.annulus(r_min=0.39, r_max=0.4, height=0.6), 0.3)
+    bottom = placed(trimesh.creation.cylinder(radius=0.39, height=0.02), 0.01)
+    table = placed(trimesh.creation.box((3.0, 2.0, 0.1)), -0.05)
+    image = render([table, wall, bottom], default_camera(), (120, 160), noise=0.003)
+    ws = workspace(image, sqjax.SegmentOptions.create(noise=0.003))
+    label = image.labels.ravel()[ws.dom.index]
+    up = (ws.host_points + ws.centre - (0.0, 0.0, 6.0)) @ turn  # back in the table's frame
+    outside = (label == 2) & (np.hypot(up[:, 0], up[:, 1]) > 0.395)
+    regions = np.stack([label == 1, outside, (label >= 2) & ~outside])  # the table, the cup's outside, inside
+    assert regions.sum(1).min() > 50, regions.sum(1)
+    idx = [np.flatnonzero(r) for r in regions]
+    theta = ws.fit(idx, None)
+    d = [ws.distances(theta[[i]], np.zeros(r.size, np.int64), r)[0] for i, r in enumerate(idx)]
+    models = Models(theta, regions, d)
+    found = post._union_hypotheses(ws, models, [(0, 1), (0, 2), (1, 2)], keep_fraction=0.9)
+    assert set(found) == {(1, 2)}, set(found)
+    cup = regions[1] | regions[2]
+    assert found[(1, 2)][1][cup].mean() >= 0.9
+
+
 def test_a_union_is_judged_at_its_bounded_volume(monkeypatch):
     """A wall seen in two pieces, with no return around it: one slab explains both. A union fit is free
     behind the surface and beside it where no point constrains it; a slab 2 m deep and about twice the wall's
