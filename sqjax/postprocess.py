@@ -82,8 +82,8 @@ def _union_hypotheses(ws: Workspace, models: Models, candidates: list, keep_frac
         ok = np.flatnonzero(np.isfinite(th).all(1))
         model, point = pairs([regions[i] for i in ok])
         dist = split_by_model(_without_visibility(ws).distances(th[ok], model, point)[0], model, len(ok))
-        dist, inside = _hollow(ws, th[ok], [regions[i] for i in ok], dist)
-        for i, dk, v in zip(ok, dist, _violations(ws, th[ok]) - inside):
+        dist, seen_inside = _hollow(ws, th[ok], [regions[i] for i in ok], dist)
+        for i, dk, v in zip(ok, dist, _violations(ws, th[ok]) - seen_inside):
             k = failed[i % len(failed)]
             if v < seen[k] and _explains_both(models, candidates[k], unions[k], dk < ws.tau, keep_fraction):
                 theta[k], d[k], seen[k] = th[i], dk, v
