@@ -9,6 +9,7 @@ grows; then rejoins parts split by occlusion and seeds again where the data is l
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 
@@ -81,7 +82,18 @@ def working_step(shape) -> int:
 
 
 def _cloud(data) -> np.ndarray:
-    pts = np.asarray(data, np.float64)
+    if isinstance(data, (str, os.PathLike)):
+        raise ValueError(
+            f"segment: expected a RangeImage or an (P, 3) array, got the path {str(data)!r}: read it first"
+            " (sqjax.read_range_image, sqjax.read_points)"
+        )
+    try:
+        pts = np.asarray(data, np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"segment: expected a RangeImage or an (P, 3) array of numbers, got a {type(data).__name__} that is"
+            f" not one ({err})"
+        ) from None
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"segment: expected a RangeImage or an (P, 3) array, got shape {pts.shape}")
     return pts

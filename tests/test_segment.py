@@ -102,9 +102,13 @@ def test_degenerate_images_get_a_clear_error(depth, message):
         segment(RangeImage(depth, PinholeCamera(50, 50, 20, 15)))
 
 
-def test_bad_input_type():
+@pytest.mark.parametrize(
+    "data", [np.zeros((5, 4)), (np.zeros((5, 3)), "point_cloud"), "cloud.ply", [[1.0, 2.0, 3.0], [1.0, 2.0]]]
+)
+def test_bad_input_type(data):
+    """A wrong shape, a (points, kind) pair, a path or ragged rows: an error naming what segment takes."""
     with pytest.raises(ValueError, match="RangeImage or an"):
-        segment(np.zeros((5, 4)))
+        segment(data)
 
 
 def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
