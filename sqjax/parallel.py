@@ -21,10 +21,11 @@ def cpu_devices() -> int:
     return len(devices) if devices[0].platform == "cpu" else 1
 
 
-def splits(n: int) -> bool:
-    """Whether a batch of n problems is split: several CPU devices, and they divide n."""
+def splits(n: int, at_least: int = 0) -> bool:
+    """Whether a batch of n problems is split: several CPU devices, they divide n, and n >= `at_least`
+    (a pair kernel's smaller calls run faster whole: `padding.PAIRS`)."""
     d = cpu_devices()
-    return d > 1 and n % d == 0
+    return d > 1 and n % d == 0 and n >= at_least
 
 
 def shard(fn, sharded: tuple[bool, ...]):
