@@ -52,11 +52,11 @@ class Domain:
     def dilate(self, regions, rings: int):
         """Regions (M, P) bool grown by `rings` steps along the adjacency.
 
-        The regions are packed 8 to a byte (np.packbits over M), so a step costs M / 8 byte
+        The regions are packed 8 to a byte (`pack_rows`), so a step costs M / 8 byte
         operations per point. Images: shifted slices of the (M / 8, H, W) pixel grid, masked by the
         edges (a memory copy per direction, not a gather); clouds: a gather per neighbour column."""
         M = regions.shape[0]
-        bits = np.packbits(regions, axis=0)  # (ceil(M / 8), P) uint8
+        bits = pack_rows(regions)  # (ceil(M / 8), P) uint8
         if self.edges is None:
             bits = _dilate_cloud(bits, self.neighbours, rings)
         else:
@@ -74,6 +74,20 @@ class Domain:
                 g = step
             bits = g.reshape(-1, H * W)[:, self.index]
         return np.unpackbits(bits, axis=0, count=M).view(bool)
+
+
+def pack_rows(rows: np.ndarray) -> np.ndarray:
+    """`np.packbits(rows, axis=0)` for rows (M, P) bool -> (ceil(M / 8), P) uint8, as eight shifted ORs
+    of whole rows: packbits across rows strides through memory (4-5 times slower at P = 19,200)."""
+    M, P = rows.shape
+    B = -(-M // 8)
+    padded = np.zeros((B * 8, P), np.uint8)
+    padded[:M] = rows
+    padded = padded.reshape(B, 8, P)
+    bits = np.zeros((B, P), np.uint8)
+    for k in range(8):
+        bits |= padded[:, k] << np.uint8(7 - k)
+    return bits
 
 
 def image_domain(image: RangeImage, jump_factor: float, noise: float) -> Domain:

@@ -817,3 +817,12 @@ def test_an_island_of_a_label_goes_to_the_part_around_it():
     assert (out[10:13, 14:17] == 0).all()
     assert (out[2:4, 14:16] == 1).all() and (out[18:21, 12:15] == 1).all()
     assert np.array_equal(out[grid != 1], grid[grid != 1])
+
+
+@pytest.mark.parametrize("M", [1, 7, 8, 9, 23])
+def test_pack_rows_is_packbits_over_rows(M):
+    """Growth's dilation packs regions 8 to a byte with shifted ORs: the same bytes as numpy's packbits."""
+    from sqjax.domain import pack_rows
+
+    rows = np.random.default_rng(M).random((M, 301)) < 0.3
+    assert np.array_equal(pack_rows(rows), np.packbits(rows, axis=0))
