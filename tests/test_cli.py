@@ -604,3 +604,18 @@ def test_one_input_stays_on_one_device_and_many_are_split_over_the_cores(
     assert calls == []
     run(capsys, "segment", scene.parent, "--out", tmp_path / "many")
     assert calls == [None]
+
+
+def test_noise_free_cloud_gets_a_note_naming_noise(capsys, tmp_path):
+    """Samples of a CAD box have no noise: the run says so and names --noise; a sensor-like cloud does not."""
+    box = trimesh.creation.box((1.0, 0.6, 0.4))
+    pts = np.asarray(trimesh.sample.sample_surface(box, 4000, seed=0)[0])
+    np.save(tmp_path / "box.npy", pts)
+    code, stdout, err = run(capsys, "segment", tmp_path / "box.npy", "--out", tmp_path / "a", "--no-figure")
+    assert code == 0, err
+    assert "look noise-free" in stdout and "--noise" in stdout
+    noisy = pts + np.random.default_rng(0).normal(0, 0.004, pts.shape)
+    np.save(tmp_path / "noisy.npy", noisy)
+    code, stdout, err = run(capsys, "segment", tmp_path / "noisy.npy", "--out", tmp_path / "b", "--no-figure")
+    assert code == 0, err
+    assert "noise-free" not in stdout
