@@ -75,7 +75,7 @@ _TWO_DEVICES = textwrap.dedent("""
     pts = rng.normal(size=(4, 64, 3)) * np.array([1.0, 0.6, 0.3])
     opts = FitOptions(max_steps=3, multistart=False, robust=True)
     sharded = fit(pts, options=opts)
-    parallel.splits = lambda K: False            # the same call on one device
+    parallel.splits = lambda K, at_least=0: False  # the same call on one device
     single = fit(pts, options=opts)
     assert np.array_equal(np.asarray(sharded.cost), np.asarray(single.cost))
     assert np.array_equal(np.asarray(sharded.distance), np.asarray(single.distance))
@@ -84,10 +84,10 @@ _TWO_DEVICES = textwrap.dedent("""
     from sqjax import segment
     from sqjax.scenes import random_scene
     image, _ = random_scene(3, n_parts=(3, 3), shape=(60, 80))
-    parallel.splits = lambda K: K % 2 == 0
+    parallel.splits = lambda K, at_least=0: K % 2 == 0  # every call split, the pair kernels' small ones too
     parallel.cpu_devices = lambda: 2
     split = segment(image, window=6)
-    parallel.splits, parallel.cpu_devices = (lambda K: False), (lambda: 1)
+    parallel.splits, parallel.cpu_devices = (lambda K, at_least=0: False), (lambda: 1)
     assert np.array_equal(split.labels, segment(image, window=6).labels)
     print("ok")
 """)
@@ -108,7 +108,7 @@ _MULTISTART_TWO_DEVICES = textwrap.dedent("""
     pts = rng.normal(size=(64, 96, 3)) * np.array([1.0, 0.6, 0.3])
     opts = FitOptions(max_steps=2, robust=False)  # the 18 starting candidates of the multistart
     sharded = fit(pts, options=opts)
-    parallel.splits = lambda K: False
+    parallel.splits = lambda K, at_least=0: False
     single = fit(pts, options=opts)
     assert np.isfinite(np.asarray(sharded.cost)).all()
     a, b = np.asarray(sharded.cost), np.asarray(single.cost)  # chunked differently: rounding only
