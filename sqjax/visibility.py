@@ -23,7 +23,7 @@ from . import rotation as so3
 from .cache import kernel_jit, persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .hypotheses import mask_pairs
-from .padding import PAIRS, calls
+from .padding import calls, pair_split
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 
 if TYPE_CHECKING:
@@ -92,7 +92,7 @@ def _ray_kernel(ws: Workspace, kernel, theta, model, ends, rays, per_pair) -> np
         mi, pts, ray, val = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
         mi[:m], pts[:m], ray[:m], val[:m] = model[s : s + m], ends[s : s + m], rays[s : s + m], per_pair[s : s + m]
         host = theta_d.dtype  # numpy inputs: the kernel call transfers them (no eager device ops)
-        split = parallel.splits(n, PAIRS)  # every argument is per pair: split, with each block's indices its own
+        split = pair_split(n)  # every argument is per pair: split, with each block's indices its own
         index = np.arange(n, dtype=np.int32) % (n // parallel.cpu_devices() if split else n)
         args = [theta_d[mi], pts.astype(host), ray.astype(host), index, val.astype(host)]
         if kernel is not _free_space:  # back to the camera at most (its plane, orthographic)

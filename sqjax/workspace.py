@@ -23,7 +23,7 @@ from .cache import kernel_jit, persistent_kernel
 from .chart import EPSILON, LOG_SIZE, ROTATION, TRANSLATION
 from .domain import Domain, noise_scale, robust_centre
 from .numerics import to_device
-from .padding import PAIRS, calls, fit_calls, pad_rows, point_rows, refit_points
+from .padding import calls, fit_calls, pad_rows, pair_split, point_rows, refit_points
 from .solver import fit_padded, fit_padded_sharded
 from .superquadric import distance_from_log, log_inside_outside_and_gradient
 from .visibility import seen_through
@@ -140,7 +140,7 @@ class Workspace:
 
         pending = []
         for s, n in calls(E):
-            kernel = parallel.sharded_kernel(_pair_distances, split) if parallel.splits(n, PAIRS) else _pair_distances
+            kernel = parallel.sharded_kernel(_pair_distances, split) if pair_split(n) else _pair_distances
             m = min(n, E - s)
             mi, pi = np.zeros(n, np.int64), np.zeros(n, np.int32)
             mi[:m], pi[:m] = model[s : s + m], point[s : s + m]
