@@ -206,34 +206,22 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         )
         if seg.parts:
             print(_parts_table(seg))
-        if kind == "point_cloud" and options.sensor.noise is None:
-            hint = noise_free_hint(data, seg.noise)
-            if hint:
-                print(hint)
+        hint = noise_free_hint(seg)
+        if hint:
+            print(hint)
         print(f"wrote {out}{os.sep}: {' '.join(written)}")
     return seg, written
 
 
-NOISE_FREE = 1e-4
-"""Estimated noise over a cloud's extent below which `noise_free_hint` speaks: the shared sensor
-clouds measure 1.3e-3 (laser-scanned rooms) to 3e-2, dense surface samples of CAD meshes 0 to 4e-6
-(the float32 fits' own residual); sparse ones get the residual of their edges and no note."""
-
-
-def noise_free_hint(points, noise: float) -> str:
-    """A note for a cloud (n, 3) whose estimated noise is far below any sensor's (surface samples of a
-    mesh): '' otherwise. No result changes; the note names the option that sets the tolerance."""
-    import numpy as np
-
-    pts = np.asarray(points, np.float64)
-    pts = pts[np.isfinite(pts).all(1)]
-    extent = float(np.max(np.ptp(pts, 0))) if len(pts) else 0.0
-    if extent == 0.0 or noise >= NOISE_FREE * extent:
+def noise_free_hint(seg) -> str:
+    """A note for a cloud `segment` judged noise-free (`segmentation.noise_free`), naming the option that
+    sets the tolerance; '' otherwise. No result changes."""
+    if not seg.stats.get("noise_free"):
         return ""
     return (
-        f"sqjax: note: these points look noise-free (estimated noise {noise:.2g}, {noise / extent:.1g} of their "
-        "extent), so every rounded edge a superquadric leaves can become a part; --noise SIGMA sets the "
-        "tolerance (about 0.004 x a part's size makes a sampled cube or cylinder one part)"
+        f"sqjax: note: these points look noise-free (estimated noise {seg.noise:.2g}), so every rounded edge "
+        "a superquadric leaves can become a part; --noise SIGMA sets the tolerance (about 0.004 x a part's "
+        "size makes a sampled cube or cylinder one part)"
     )
 
 
