@@ -84,12 +84,10 @@ sensor clouds measure 1.3e-3 (laser-scanned rooms) to 3e-2, dense surface sample
 
 
 def noise_free(points, noise: float) -> bool:
-    """Whether a cloud (n, 3) looks noise-free: its estimated `noise` is below `NOISE_FREE` of its extent
-    (surface samples of a mesh). Then every rounded edge a superquadric leaves can become a part, and the
-    tolerance should be given (`noise=`, about 0.004 x a part's size for a sampled cube or cylinder)."""
-    pts = np.asarray(points, np.float64)
-    pts = pts[np.isfinite(pts).all(1)]
-    extent = float(np.max(np.ptp(pts, 0))) if len(pts) else 0.0
+    """Whether finite points (n, 3) look noise-free: their estimated `noise` is below `NOISE_FREE` of their
+    extent (surface samples of a mesh). Then every rounded edge a superquadric leaves can become a part,
+    and the tolerance should be given (`noise=`, about 0.004 x a part's size for a sampled cube or cylinder)."""
+    extent = float(np.max(np.ptp(points, 0))) if len(points) else 0.0
     return extent > 0.0 and noise < NOISE_FREE * extent
 
 
@@ -327,6 +325,6 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         found = parts(ws, theta, labels.ravel()[ws.dom.index])
     stats["subsample"] = step
     if not isinstance(data, RangeImage) and opts.sensor.noise is None:
-        stats["noise_free"] = noise_free(full if full is not None else data, ws.noise.sigma)
+        stats["noise_free"] = noise_free(ws.dom.points, ws.noise.sigma)  # the working points: valid already
     history = [to_world(h, ws.centre).unbatch() if len(h) else [] for h in history]
     return Segmentation(found, labels, history, ws.noise.sigma, ws.tau, clock.timings(), stats)
