@@ -37,6 +37,9 @@ correct at T = 0.8 against the fine labels, 2026-12-03): every point 13/48 (room
 40 s) and 12/44 (room1, 237,907 points, 96 s); one in 2 and one in 3 (this budget) 13/48 in 29 s and
 12/44 in 39 s; about 19,200 points (one image's worth) 9/48 and 8/44."""
 
+MERGE_ROUNDS = 8
+"""At most this many merge-and-select rounds per final selection (each joins pairs: 2^8 pieces)."""
+
 __all__ = ["Part", "Segmentation", "SegmentOptions", "segment", "working_step", "workspace"]
 
 
@@ -251,6 +254,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         stats["greedy_worse"] += int(st["greedy_gap"] > 1e-9)
         models.take(m)
         history.append(models.theta.copy())
+        return m
 
     def report(stage, round_):
         if progress is not None:
@@ -272,12 +276,28 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
                     break
             select_(models)
 
-    def final_selection(models):
-        """Rejoin occlusion splits, select, drop the redundant."""
-        if opts.extras.merge and len(models.theta) > 1:
+    def final_selection(models, round_):
+        """Rejoin occlusion splits, select, drop the redundant. While the selection keeps unions, they
+        grow as hypotheses of their own (a union explains only its two regions; the part may go on
+        past them) and merging repeats: a part found as n pieces (a sphere's caps) needs about
+        log2(n) pairwise rounds."""
+        selected = False
+        for _ in range(MERGE_ROUNDS if opts.extras.merge else 0):
+            n = len(models.theta)
+            if n < 2:
+                break
             models = merge(ws, models, tried_unions)
+            if len(models.theta) == n:
+                break
+            selected = True
+            kept = np.flatnonzero(select_(models))
+            if not (kept >= n).any():
+                break
+            models.active[:] = kept >= n
+            recover_and_select(models, opts.growth.max_steps, round_)
         if len(models.theta):
-            select_(models)
+            if not selected:
+                select_(models)
             stats["pruned"] = stats.get("pruned", 0) + prune_redundant(
                 models, opts.extras.min_exclusive, opts.seeds.min_seed_points
             )
@@ -285,7 +305,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
 
     recover_and_select(models, opts.growth.max_steps, 0)
     report("merge", 0)
-    models = final_selection(models)
+    models = final_selection(models, 0)
     windowed = np.zeros(ws.P, bool)  # the points some seed window covers
     windowed[np.concatenate(dom.seeds) if dom.seeds else []] = True
     for round_ in range(1, opts.extras.reseed + 1):
@@ -311,7 +331,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
         models = models.concat(new)
         recover_and_select(models, opts.growth.max_steps, round_)
         report("merge", round_)
-        models = final_selection(models)
+        models = final_selection(models, round_)
     report("finish", opts.extras.reseed)
     labels = label_image(ws, models)
     theta = part_volumes(ws, models, labels) if opts.extras.part_volumes else models.theta
