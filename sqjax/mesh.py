@@ -47,7 +47,12 @@ def to_trimesh(sq: Superquadric, resolution: int = 48):
     mesh = trimesh.Trimesh(verts, faces, process=True)  # merges the pole vertices
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
-    mesh.fix_normals()
+    # the grid's winding is consistent by construction: outward is a sign (trimesh's fix_normals
+    # needs networkx for a mesh it cannot check, e.g. a flat part's)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a flat part's mesh has no volume
+        inward = mesh.volume < 0
+    if inward:
+        mesh.invert()
     return mesh
 
 

@@ -138,6 +138,16 @@ def test_mesh_is_watertight(size, eps, extra):
     assert mesh.volume > 0
 
 
+def test_a_flat_part_meshes_without_networkx():
+    """A part flat to 1e-10 (what a cloud of repeated points gave) is meshed and exported: outward
+    normals are a sign of the grid's volume, not trimesh's winding repair, which needs networkx (not a
+    dependency) for a mesh it cannot check."""
+    flat = to_trimesh(Superquadric.create((0.3, 1e-10, 1e-10)), 16)
+    assert np.isfinite(flat.vertices).all()
+    thin = to_trimesh(Superquadric.create((0.3, 0.2, 1e-6), (0.3, 0.3), **POSE), 16)
+    assert thin.volume > 0 and thin.is_winding_consistent
+
+
 @pytest.mark.parametrize(
     "size, eps", [((1.0, 0.6, 1.4), (1.0, 1.0)), ((1.0, 0.6, 1.4), (0.5, 0.8)), ((0.8, 1.0, 0.6), (1.3, 0.7))]
 )
