@@ -122,15 +122,29 @@ def _cloud_window(opts: SegmentOptions) -> int:
     return opts.seeds.window or max(opts.seeds.min_seed_points, 48)
 
 
-def working_subset(cloud: np.ndarray, step: int | None = None) -> tuple[np.ndarray, int]:
-    """The (n_rows, 3) cloud with all but one in `step` of its valid rows made NaN (a fixed random
-    choice, so that no order of the rows aliases with the step; the rows keep their places), and the
-    step. `step` None: the one that brings the valid rows nearest to `WORKING_POINTS`."""
+def distinct_rows(cloud: np.ndarray) -> np.ndarray:
+    """Indices of the finite rows of a cloud (n_rows, 3) that repeat no earlier row, ascending.
+
+    A repeated point carries no more of the surface, and k nearest neighbours among copies of one
+    point join nothing: a cloud of 50 points written 40 times each became 25 parts of zero size."""
     valid = np.flatnonzero(np.isfinite(cloud).all(1))
+    order = valid[np.lexsort(cloud[valid].T)]  # stable: the first of equal rows leads
+    rows = cloud[order]
+    new = np.ones(order.size, bool)
+    new[1:] = np.any(rows[1:] != rows[:-1], axis=1)
+    return np.sort(order[new])
+
+
+def working_subset(cloud: np.ndarray, step: int | None = None) -> tuple[np.ndarray, int]:
+    """The (n_rows, 3) cloud with all but one in `step` of its distinct valid rows made NaN (a fixed
+    random choice, so that no order of the rows aliases with the step; the rows keep their places),
+    repeated rows made NaN too (`distinct_rows`), and the step. `step` None: the one that brings the
+    distinct rows nearest to `WORKING_POINTS`. The cloud itself when nothing is dropped."""
+    valid = distinct_rows(cloud)
     step = step or max(1, int(round(valid.size / WORKING_POINTS)))
-    if step <= 1:
+    if step <= 1 and valid.size == np.isfinite(cloud).all(1).sum():
         return cloud, 1
-    keep = np.random.default_rng(0).permutation(valid)[: -(-valid.size // step)]
+    keep = np.random.default_rng(0).permutation(valid)[: -(-valid.size // max(step, 1))]
     work = np.full_like(cloud, np.nan)
     work[keep] = cloud[keep]
     return work, step
@@ -228,11 +242,10 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     else:
         cloud = _cloud(data)
         data, step = working_subset(cloud, opts.extras.subsample)
-        if step > 1:
+        if data is not cloud:  # every input row is labelled by the final models
             full = cloud
-            if opts.sensor.noise is None:  # the sensor's noise, measured at its own density
-                valid = cloud[np.isfinite(cloud).all(1)]
-                cloud_sigma = max(cloud_noise(valid, _cloud_window(opts)), 1e-12)
+            if step > 1 and opts.sensor.noise is None:  # the sensor's noise, measured at its own density
+                cloud_sigma = max(cloud_noise(cloud[distinct_rows(cloud)], _cloud_window(opts)), 1e-12)
     ws = workspace(data, opts, k=k, cloud_sigma=cloud_sigma)
     opts, dom = ws.opts, ws.dom
     models, ws = seed(ws)

@@ -360,6 +360,19 @@ def test_a_closed_cloud_is_not_left_in_pieces():
         assert np.bincount(half).max() >= 0.97 * 4000
 
 
+def test_repeated_points_are_segmented_once_and_labelled_alike():
+    """A cloud with every third point written twice segments as the distinct cloud does (k nearest
+    neighbours among copies join nothing: 50 points written 40 times each gave 25 parts of zero size),
+    and each copy gets its original's label."""
+    a = Superquadric.create((0.3, 0.2, 0.1))
+    b = Superquadric.create((0.1, 0.1, 0.25), translation=(0.6, 0.0, 0.0))
+    pts = np.concatenate([sample_surface(a, 1500, seed=1, noise=0.003), sample_surface(b, 1500, seed=2, noise=0.003)])
+    once, twice = segment(pts), segment(np.concatenate([pts, pts[::3]]))
+    assert len(once.parts) == len(twice.parts) == 2 and twice.labels.shape == (4000,)
+    assert np.array_equal(twice.labels[:3000], once.labels) and np.array_equal(twice.labels[3000:], once.labels[::3])
+    assert [p.num_points for p in twice.parts] == [int(np.sum(twice.labels == i + 1)) for i in range(2)]
+
+
 def test_merge_candidates_grow_linearly_with_the_models():
     """A scene of many selected pieces must not cost a union fit per pair (28k on a 239-piece plane)."""
     from sqjax.postprocess import MERGE_NEIGHBOURS, merge_candidates
