@@ -217,10 +217,13 @@ def _mesh_points(path):
 
 def _text_points(path):
     lines = [s for s in path.read_text(errors="replace").splitlines() if s.strip() and s.strip()[0] != "#"]
+    sep = "," if lines and "," in lines[0] else None
+    if path.suffix.lower() == ".csv" and lines and not _numeric(lines[0].split(sep)[:3]):  # "x,y,z"
+        lines = lines[1:]
+        sep = "," if lines and "," in lines[0] else None
     if not lines:
         return np.zeros((0, 3)), None
     try:
-        sep = "," if "," in lines[0] else None
         return np.loadtxt(lines, np.float64, delimiter=sep, usecols=(0, 1, 2), ndmin=2).reshape(-1, 3), None
     except ValueError as e:
         raise ValueError(f"every line needs >= 3 numeric columns ({e})") from None
@@ -259,8 +262,18 @@ def _write_npy(path, pts):
         np.save(f, pts)
 
 
+def _numeric(fields) -> bool:
+    """Whether every field of a text row reads as a number."""
+    try:
+        [float(f) for f in fields]
+    except ValueError:
+        return False
+    return True
+
+
 def _write_txt(path, pts):
-    np.savetxt(path, pts, fmt="%.17g")  # 17 significant digits round-trip float64 exactly
+    sep = "," if path.suffix.lower() == ".csv" else " "
+    np.savetxt(path, pts, fmt="%.17g", delimiter=sep)  # 17 significant digits round-trip float64 exactly
 
 
 _CLOUD = "is an unorganised point cloud, not a range image; use read_points"
@@ -276,6 +289,7 @@ _FORMATS: dict[str, tuple[Any, Any, Any, Any]] = {  # per extension: a handler o
     ".ply": (_CLOUD, _mesh_points, _TO_IMAGE, _write_ply),
     ".xyz": (_CLOUD, _text_points, _TO_IMAGE, _write_txt),
     ".txt": (_CLOUD, _text_points, _TO_IMAGE, _write_txt),
+    ".csv": (_CLOUD, _text_points, _TO_IMAGE, _write_txt),
     ".obj": (_MESH, _mesh_points, _TO_IMAGE, _TO_POINTS),
     ".stl": (_MESH, _mesh_points, _TO_IMAGE, _TO_POINTS),
 }
@@ -397,10 +411,11 @@ def read_points(path, *, with_labels: bool = False):
     (a file whose every row has one is an error).
 
     `.ply` / `.obj` / `.stl` (via trimesh; meshes give their distinct vertex positions), `.xyz` / `.txt`
-    (whitespace or comma separated, first 3 columns used, `#` comments), `.npy` `(N, 3)` (to `(N, 7)`,
-    first 3 columns used), `.pcd` (any organisation). With `with_labels=True` returns `(points,
-    labels)`: `(N,)` int64 from a PCD `label` field, else None. Raises FileNotFoundError / ValueError
-    naming the file. `read_input` (what `sqjax segment` reads) keeps the NaN rows instead.
+    / `.csv` (whitespace or comma separated, first 3 columns used, `#` comments; a CSV may start with
+    one header row such as `x,y,z`), `.npy` `(N, 3)` (to `(N, 7)`, first 3 columns used), `.pcd` (any
+    organisation). With `with_labels=True` returns `(points, labels)`: `(N,)` int64 from a PCD `label`
+    field, else None. Raises FileNotFoundError / ValueError naming the file. `read_input` (what `sqjax
+    segment` reads) keeps the NaN rows instead.
     """
     pts, labels = read_point_rows(path)
     keep = np.isfinite(pts).all(1)

@@ -195,6 +195,15 @@ def test_points_text_variants_and_nan(tmp_path):
     assert np.array_equal(read_points(tmp_path / "b.xyz"), [[1, 2, 3], [4, 5, 6]])
     (tmp_path / "e.txt").write_text("")
     assert read_points(tmp_path / "e.txt").shape == (0, 3)
+    # a spreadsheet's CSV: one header row; and written back as CSV
+    (tmp_path / "c.csv").write_text("x,y,z,intensity\n1,2,3,0.5\n4,5,6,0.1\n")
+    assert np.array_equal(read_points(tmp_path / "c.csv"), [[1, 2, 3], [4, 5, 6]])
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    write_points(tmp_path / "w.csv", pts)
+    assert "," in (tmp_path / "w.csv").read_text() and np.array_equal(read_points(tmp_path / "w.csv"), pts)
+    (tmp_path / "bad.csv").write_text("x,y,z\n1,2\n")
+    with pytest.raises(ValueError, match="3 numeric columns"):
+        read_points(tmp_path / "bad.csv")
 
 
 def test_read_input_keeps_every_row_of_a_cloud(tmp_path):

@@ -11,7 +11,7 @@ Commands (each has `--help`)::
     sqjax fit      POINTS [--json OUT]
 
 `segment` reads range images (`.npz`, `.npy`, 16-bit `.png`, organised `.pcd`) and point clouds
-(`.ply`, `.xyz`, `.txt`, unorganised `.pcd`, `(N, 3)` `.npy`, mesh vertices of `.obj` / `.stl`) and
+(`.ply`, `.xyz`, `.txt`, `.csv`, unorganised `.pcd`, `(N, 3)` `.npy`, mesh vertices of `.obj` / `.stl`) and
 writes into DIR: `models.json` (schema: `sqjax.export`), `labels.npy` (raw int32 labels, 0 = none,
 i + 1 = part i), `labels.png` (colour labels) and `labels_id.png` (16-bit label ids; clouds:
 `labels.ply`, coloured points), `parts.glb` (glTF, Y-up) and `parts.ply` (camera frame) part meshes
