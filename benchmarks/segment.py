@@ -205,7 +205,8 @@ def closed_cloud(s, spacing, noise=0.005):
         for j, other in enumerate(parts):
             if j != i:
                 hidden |= np.asarray(sqjax.inside_outside(other, q)) < 1.0
-        q = q[~hidden] + noise * np.random.default_rng([s, i]).standard_normal((int((~hidden).sum()), 3))
+        q = q[~hidden]
+        q = q + noise * np.random.default_rng([s, i]).standard_normal(q.shape)
         points.append(q)
         truth.append(np.full(len(q), i + 1))
     return np.concatenate(points), np.concatenate(truth)

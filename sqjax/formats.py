@@ -217,13 +217,12 @@ def _mesh_points(path):
 
 def _text_points(path):
     lines = [s for s in path.read_text(errors="replace").splitlines() if s.strip() and s.strip()[0] != "#"]
-    sep = "," if lines and "," in lines[0] else None
-    if path.suffix.lower() == ".csv" and lines and not _numeric(lines[0].split(sep)[:3]):  # "x,y,z"
-        lines = lines[1:]
-        sep = "," if lines and "," in lines[0] else None
+    if path.suffix.lower() == ".csv" and lines and not _numeric(lines[0].replace(",", " ").split()[:3]):
+        lines = lines[1:]  # a header row: "x,y,z"
     if not lines:
         return np.zeros((0, 3)), None
     try:
+        sep = "," if "," in lines[0] else None
         return np.loadtxt(lines, np.float64, delimiter=sep, usecols=(0, 1, 2), ndmin=2).reshape(-1, 3), None
     except ValueError as e:
         raise ValueError(f"every line needs >= 3 numeric columns ({e})") from None

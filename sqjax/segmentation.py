@@ -135,16 +135,15 @@ def distinct_rows(cloud: np.ndarray) -> np.ndarray:
     return np.sort(order[new])
 
 
-def working_subset(cloud: np.ndarray, step: int | None = None) -> tuple[np.ndarray, int]:
-    """The (n_rows, 3) cloud with all but one in `step` of its distinct valid rows made NaN (a fixed
-    random choice, so that no order of the rows aliases with the step; the rows keep their places),
-    repeated rows made NaN too (`distinct_rows`), and the step. `step` None: the one that brings the
-    distinct rows nearest to `WORKING_POINTS`. The cloud itself when nothing is dropped."""
-    valid = distinct_rows(cloud)
-    step = step or max(1, int(round(valid.size / WORKING_POINTS)))
-    if step <= 1 and valid.size == np.isfinite(cloud).all(1).sum():
+def working_subset(cloud: np.ndarray, distinct: np.ndarray, step: int | None = None) -> tuple[np.ndarray, int]:
+    """The (n_rows, 3) cloud with all but one in `step` of its `distinct` rows (`distinct_rows`) made
+    NaN (a fixed random choice, so that no order of the rows aliases with the step; the rows keep their
+    places), the other rows NaN too, and the step. `step` None: the one that brings the distinct rows
+    nearest to `WORKING_POINTS`. The cloud itself when nothing is dropped."""
+    step = step or max(1, int(round(distinct.size / WORKING_POINTS)))
+    if step == 1 and distinct.size == np.isfinite(cloud).all(1).sum():
         return cloud, 1
-    keep = np.random.default_rng(0).permutation(valid)[: -(-valid.size // max(step, 1))]
+    keep = np.random.default_rng(0).permutation(distinct)[: -(-distinct.size // step)]
     work = np.full_like(cloud, np.nan)
     work[keep] = cloud[keep]
     return work, step
@@ -241,11 +240,12 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             full, data = data, data.subsample(step)
     else:
         cloud = _cloud(data)
-        data, step = working_subset(cloud, opts.extras.subsample)
+        distinct = distinct_rows(cloud)
+        data, step = working_subset(cloud, distinct, opts.extras.subsample)
         if data is not cloud:  # every input row is labelled by the final models
             full = cloud
             if step > 1 and opts.sensor.noise is None:  # the sensor's noise, measured at its own density
-                cloud_sigma = max(cloud_noise(cloud[distinct_rows(cloud)], _cloud_window(opts)), 1e-12)
+                cloud_sigma = max(cloud_noise(cloud[distinct], _cloud_window(opts)), 1e-12)
     ws = workspace(data, opts, k=k, cloud_sigma=cloud_sigma)
     opts, dom = ws.opts, ws.dom
     models, ws = seed(ws)
