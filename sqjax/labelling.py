@@ -156,7 +156,8 @@ def label_full(image: RangeImage, step: int, ws: Workspace, models: Models, coar
     A full-size pixel may take the label of any coarse pixel in the 3 x 3 block around it (its own
     coarse pixel and the 8 adjacent): it goes to the one whose model is nearest (eq. 10; a face turned
     away from the camera pays tau, as in `label_image`), if that model explains it (within tau); else, with
-    `propagate`, the label of its own coarse pixel if that one was labelled by `_propagate`; else 0.
+    `propagate`, the label of its own coarse pixel if that one carries a label its model does not explain
+    (`_carried`: `propagate`'s, or one the free-space test put out of its model's reach); else 0.
     Returns the (H, W) label image (label i + 1 = model owns[i]), the models that own labels, and the
     runner of the full-size points.
     """
@@ -170,10 +171,10 @@ def label_full(image: RangeImage, step: int, ws: Workspace, models: Models, coar
     r, c = np.clip(np.rint(r / step).astype(np.int64), 0, h - 1), np.clip(np.rint(c / step).astype(np.int64), 0, w - 1)
     padded = np.pad(coarse, 1)
     cand = np.stack([padded[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], 1)  # (Pf, 9)
-    explained = np.zeros(h * w, bool)
-    explained[ws.dom.index[models.regions.any(0)]] = True
+    carried = np.zeros(h * w, bool)
+    carried[ws.dom.index] = _carried(ws, models, coarse.ravel()[ws.dom.index])
     own = coarse[r, c]
-    labels, owns = _label_by_candidates(full, ws, models, cand, np.where(explained[r * w + c], 0, own))
+    labels, owns = _label_by_candidates(full, ws, models, cand, np.where(carried[r * w + c], own, 0))
     return labels.reshape(H, W), owns, full
 
 
@@ -193,9 +194,21 @@ def label_cloud(cloud: np.ndarray, ws: Workspace, models: Models, coarse: np.nda
     _, near = cKDTree(ws.dom.points).query(P, k)
     near = near.reshape(P.shape[0], k)
     cand = coarse[ws.dom.index[near]]  # (Pf, k) labels of the nearest working points
-    explained = models.regions.any(0)
-    fallback = np.where(explained[near[:, 0]], 0, cand[:, 0])
+    carried = _carried(ws, models, coarse[ws.dom.index])
+    fallback = np.where(carried[near[:, 0]], cand[:, 0], 0)
     return (*_label_by_candidates(full, ws, models, cand, fallback), full)
+
+
+def _carried(ws: Workspace, models: Models, labels: np.ndarray) -> np.ndarray:
+    """Which working points (P,) hold a label (labels (P,), 0 = none, i + 1 = model i) that their model does
+    not explain (eq. 10 within tau): labels `propagate` carried along the surface, or given where the
+    free-space test puts the point out of its model's reach. A full-size point no candidate model explains
+    takes such a label (`_label_by_candidates`' fallback), as the working point it is nearest did."""
+    point = np.flatnonzero(labels > 0)
+    d, _, _ = ws.distances(models.theta, labels[point] - 1, point)
+    out = np.zeros(labels.shape, bool)
+    out[point] = ~(d < ws.tau)
+    return out
 
 
 _CLOUD_CANDIDATES = 8
