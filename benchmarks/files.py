@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -30,7 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from machine import cpu_name
+from machine import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 CAMERA_FILES = ("camera_params.json", "intrinsics.json")
@@ -118,7 +117,7 @@ def main(argv=None) -> int:
         f"peak RSS {summary['peak_rss_gib_max']:.2f} GiB; refused: {len(summary['refused'])}"
     )
     result = {
-        "machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version()},
+        "machine": machine(),
         "command": "python benchmarks/files.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d"),
         "columns": "file, exit status, wall s, segment s, compile s, parts, peak RSS GiB",

@@ -85,7 +85,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -142,7 +141,7 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import sqjax  # noqa: E402
-from machine import cpu_name  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+from machine import machine  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from sqjax.fitting import FitOptions  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)  # float64 rows; float32 stays the default of fit()
@@ -566,14 +565,7 @@ def deformed_problems(n_points: int, count: int, kind: str, seed: int = 0):
 def main():
     args = ARGS or _parse([])
     results = {
-        "machine": {
-            "cpu": cpu_name(),
-            "cores": os.cpu_count(),
-            "jax_devices": len(jax.local_devices()),
-            "python": platform.python_version(),
-            "jax": jax.__version__,
-            "backend": jax.default_backend(),
-        },
+        "machine": machine(jax_devices=len(jax.local_devices()), backend=jax.default_backend()),
         "command": "python " + " ".join([sys.argv[0]] + sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d"),
         "residual": args.residual,

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import segment as bench  # noqa: E402  (the segmentation benchmark's scorer and data paths)
 import sqjax  # noqa: E402
-from machine import cpu_name  # noqa: E402
+from machine import machine  # noqa: E402
 from sqjax import labelling, segmentation  # noqa: E402
 
 LABELS = ("full", "upsampled")
@@ -112,12 +111,7 @@ def main(argv=None) -> int:
         f"max {summary['run_seconds_max']:.2f}"
     )
     out = {
-        "machine": {
-            "cpu": cpu_name(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "jax": __import__("jax").__version__,
-        },
+        "machine": machine(cpu_devices=args.devices),
         "date": __import__("datetime").date.today().isoformat(),
         "command": "python benchmarks/full_size.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "summary": summary,

@@ -12,3 +12,15 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor()
+
+
+def machine(**extra) -> dict:
+    """The CPU, its cores, Python's and JAX's versions (JAX: the one imported), and `extra` (e.g. devices)."""
+    import os
+    import sys
+
+    jax = sys.modules.get("jax")
+    info = {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version()}
+    if jax is not None:
+        info["jax"] = jax.__version__
+    return {**info, **extra}

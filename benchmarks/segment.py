@@ -39,7 +39,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import re
 import resource
 import sys
@@ -49,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 import sqjax
-from machine import cpu_name  # benchmarks/ is on sys.path when run as a script
+from machine import machine  # benchmarks/ is on sys.path when run as a script
 from sqjax.evaluate import hoover
 from sqjax.mesh import sample_surface, to_trimesh
 from sqjax.raycast import render
@@ -323,13 +322,7 @@ def main(argv=None):
     n_syn, n_mp = (6, 7) if args.quick else (args.scenes, args.multipart)
 
     results = {
-        "machine": {
-            "cpu": cpu_name(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "jax": __import__("jax").__version__,
-            "cpu_devices": devices,
-        },
+        "machine": machine(cpu_devices=devices),
         "command": "python benchmarks/segment.py" + (" " + " ".join(argv or sys.argv[1:])).rstrip(),
         "date": time.strftime("%Y-%m-%d"),
         "options": results_options,
