@@ -201,8 +201,14 @@ class GrowthOptions:
 class SelectionOptions:
     """Model selection (the paper's section 3, step 3): maximise m^T Q m.
 
-    - `weights`: K1, K2, K3 (None = `SelectionWeights.for_threshold(tau)`); `selector`: "greedy" (the
-      paper), "local" or "exact".
+    - `weights`: K1, K2, K3 (None = `SelectionWeights.for_threshold(tau)`: K1 = 1 per explained point,
+      K2 = K1 / (2 tau^2), so that a point at tau earns half a point, K3 = 1 per parameter, so that a
+      model pays for itself from 11 points on). K3 measured over every suite (2026-12-05, benchmarks/
+      RESULTS.md) against 1: 0.5 gave mOSD 90.9% -> 91.2%, multi-part 96.3% -> 93.4%, meshes 66.2% ->
+      67.5%, cloud views 75.2% -> 73.3%; 2 gave mOSD 91.6% (complex 82.8% -> 87.5%, noise regions 5.5%
+      -> 6.6%), multi-part 96.3%, meshes 62.3%, cloud views 74.5%: the suites move within their
+      spread and in opposite directions, so 1 stays. `selector`: "greedy" (the paper), "local" or
+      "exact".
     - `select_every`: growth steps between selections (the paper's interleaving). Measured over every
       suite (2026-12-04): 1 lost mOSD (86.0% -> 84.9%, complex 75.0% -> 70.3%), multi-part (95.6% ->
       90.4%) and meshes (57.1% -> 54.5%): a hypothesis needs a few steps to show what it explains
