@@ -35,6 +35,8 @@ from machine import machine  # noqa: E402
 from sqjax import labelling, segmentation  # noqa: E402
 
 LABELS = ("full", "upsampled")
+SCORES = ("working", *(f"{n}_{g}" for n in LABELS for g in ("grid", "size")))
+"""The correct counts of a row: the working labels, and each of LABELS on the working grid and at full size."""
 
 
 def main(argv=None) -> int:
@@ -58,7 +60,7 @@ def main(argv=None) -> int:
         return label_full(image, step, ws, models, coarse)
 
     segmentation.label_full = keep_working_labels
-    rows, total = [], {}
+    rows = []
     for f in files:
         image = sqjax.read_range_image(f)
         seg = sqjax.segment(image)
@@ -76,27 +78,20 @@ def main(argv=None) -> int:
         ignore = np.isin(truth, small[small > 0])
         truth = np.where(ignore, 0, truth)
         row = {"scene": f.stem, "parts": len(seg.parts), "run_seconds": seg.timings["run"]}
-        row["working"] = sqjax.hoover(grid_truth, coarse, tolerance=0.8, ignore=grid_ignore).correct
+        working = sqjax.hoover(grid_truth, coarse, tolerance=0.8, ignore=grid_ignore)
+        row["working"], row["truth_parts"] = working.correct, working.n_truth
         for name in LABELS:
-            row[f"{name}_grid"] = sqjax.hoover(
-                grid_truth, found[name][::step, ::step], tolerance=0.8, ignore=grid_ignore
-            ).correct
-            row[f"{name}_size"] = sqjax.hoover(truth, found[name], tolerance=0.8, ignore=ignore).correct
-        row["truth_parts"] = sqjax.hoover(grid_truth, coarse, tolerance=0.8, ignore=grid_ignore).n_truth
-        row["truth_parts_size"] = sqjax.hoover(truth, seg.labels, tolerance=0.8, ignore=ignore).n_truth
+            grid = sqjax.hoover(grid_truth, found[name][::step, ::step], tolerance=0.8, ignore=grid_ignore)
+            size = sqjax.hoover(truth, found[name], tolerance=0.8, ignore=ignore)
+            row[f"{name}_grid"], row[f"{name}_size"], row["truth_parts_size"] = grid.correct, size.correct, size.n_truth
         rows.append(row)
         print(
             f"{f.stem:10s} parts {row['parts']:3d}  run {row['run_seconds']:5.2f} s  "
-            + "  ".join(
-                f"{k} {row[k]}"
-                for k in row
-                if k.endswith(("_grid", "_size")) and k.startswith(("full", "upsampled")) or k == "working"
-            )
+            + "  ".join(f"{k} {row[k]}" for k in SCORES)
             + f" / {row['truth_parts']}",
             flush=True,
         )
-    keys = ["working", *(f"{n}_{g}" for n in LABELS for g in ("grid", "size")), "truth_parts", "truth_parts_size"]
-    total = {k: int(sum(r[k] for r in rows)) for k in keys}
+    total = {k: int(sum(r[k] for r in rows)) for k in (*SCORES, "truth_parts", "truth_parts_size")}
     warm = [r["run_seconds"] for r in rows[1:]] or [rows[0]["run_seconds"]]
     summary = {**total, "run_seconds_median": float(np.median(warm)), "run_seconds_max": float(np.max(warm))}
     print("\n| labels | correct on the working grid | correct at full size |\n|---|---:|---:|")
