@@ -16,6 +16,7 @@ import numpy as np
 
 from . import rotation as so3
 from .cache import kernel_jit, persistent_kernel
+from .deformation import max_curvature
 from .numerics import to_device
 from .superquadric import Superquadric
 
@@ -50,13 +51,21 @@ def pack(la, e, R, t, d, deform: bool):
     return jnp.concatenate(parts)
 
 
+def clip_deformation(d, log_size, epsilon):
+    """Deformation d (4,) = (Kx, Ky, k, alpha) within its valid range: tapering in [-1, 1], bending
+    curvature in [0, `deformation.max_curvature`] of the model (log a (3,), e (2,)); alpha as given."""
+    taper = jnp.clip(d[:2], -1.0, 1.0)
+    k = jnp.clip(d[2], 0.0, max_curvature(log_size, epsilon[1], taper, d[3]))
+    return jnp.concatenate([taper, k[None], d[3:]])
+
+
 def project(theta, epsilon_range, deform: bool):
-    """theta (P,) with its exponents in `epsilon_range`, tapering in [-1, 1] and bending curvature >= 0."""
+    """theta (P,) with its exponents in `epsilon_range` and its deformation in its valid range
+    (`clip_deformation`)."""
     lo, hi = epsilon_range
     theta = theta.at[EPSILON].set(jnp.clip(theta[EPSILON], lo, hi))
     if deform:
-        theta = theta.at[TAPER].set(jnp.clip(theta[TAPER], -1.0, 1.0))
-        theta = theta.at[BEND.start].set(jnp.maximum(theta[BEND.start], 0.0))
+        theta = theta.at[DEFORMATION].set(clip_deformation(theta[DEFORMATION], theta[LOG_SIZE], theta[EPSILON]))
     return theta
 
 

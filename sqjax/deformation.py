@@ -66,6 +66,31 @@ def unbend(x, bend):
     return jnp.concatenate([X - ca * shift, Y - sa * shift, z], -1)
 
 
+def max_curvature(log_size, e2, taper, alpha, xp=jnp):
+    """The largest bending curvature k (...,) that keeps a model one-to-one: its valid range is
+    0 <= k <= `max_curvature`, from log half-sizes (..., 3), the exponent e2 (...,), the tapering
+    (..., 2) and the bending angle alpha (...,).
+
+    Bending moves a point at distance r along the bending plane onto a circle of radius 1/k - r
+    (`bend_points`): the solid folds onto itself where k r reaches 1, so k r_max < 1, r_max being the
+    farthest reach of the tapered cross-section towards the bending plane; and its two ends pass each
+    other where the bent angle k a3 reaches pi. The cross-section |x / a1|^(2/e2) + |y / a2|^(2/e2) <= 1
+    reaches r_max = (|a1 cos alpha|^p + |a2 sin alpha|^p)^(1/p) in the direction alpha (its support
+    function, the dual norm: p = 2 / (2 - e2)); with tapering, a1 (1 + |Kx|) and a2 (1 + |Ky|) stand for
+    a1 and a2, the widest tapered extents taken together: an upper bound of the reach (tight without
+    tapering), so that within the range the solid never folds. Beyond it the fitted "bend" is another shape: k -> inf
+    sweeps the cross-section round an axis (a solid of revolution), which fits a ring or a curved
+    limb better than any bent superquadric does."""
+    a = xp.exp(log_size)
+    p = 2.0 / (2.0 - e2)
+    tiny = xp.finfo(a.dtype).tiny
+    u = xp.abs(a[..., 0] * (1.0 + xp.abs(taper[..., 0])) * xp.cos(alpha)) + tiny
+    v = xp.abs(a[..., 1] * (1.0 + xp.abs(taper[..., 1])) * xp.sin(alpha)) + tiny
+    big = xp.maximum(u, v)  # scaled out: (u / big)^p <= 1, no overflow for any p
+    reach = big * ((u / big) ** p + (v / big) ** p) ** (1.0 / p)
+    return xp.minimum(1.0 / reach, xp.pi / a[..., 2])
+
+
 def bend_points(x, bend, xp=jnp):
     """Forward bending of model-frame points (..., 3) (Solina & Bajcsy), exact for every k >= 0.
 

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from . import rotation as so3
-from .chart import DEFORMATION, EPSILON, LOG_SIZE, ROTATION, TRANSLATION
+from .chart import DEFORMATION, EPSILON, LOG_SIZE, ROTATION, TRANSLATION, clip_deformation
 from .deformation import unbend, untaper
 from .superquadric import (
     frame_distance,
@@ -145,9 +145,11 @@ def capped(la, R, t, points, mask, opts):
 
 
 def _bounded(state, points, mask, opts):
-    """`state` with its sizes within `_log_size_bound` at its own pose (with `opts.size_bound`)."""
+    """`state` with its sizes within `_log_size_bound` at its own pose (with `opts.size_bound`) and its
+    deformation in its valid range (a start too: bent starts are estimated, not fitted)."""
     la, e, R, t, d = state
-    return capped(la, R, t, points, mask, opts), e, R, t, d
+    la = capped(la, R, t, points, mask, opts)
+    return la, e, R, t, (clip_deformation(d, la, e) if opts.deform else d)
 
 
 def _retract(state, step, opts):
@@ -159,8 +161,7 @@ def _retract(state, step, opts):
     R = R @ so3.exp(step[ROTATION])
     if opts.deform:
         d = d + step[DEFORMATION]
-        alpha = jnp.remainder(d[3] + jnp.pi, 2 * jnp.pi) - jnp.pi  # the bending angle is periodic
-        d = jnp.stack([jnp.clip(d[0], -1.0, 1.0), jnp.clip(d[1], -1.0, 1.0), jnp.maximum(d[2], 0.0), alpha])
+        d = d.at[3].set(jnp.remainder(d[3] + jnp.pi, 2 * jnp.pi) - jnp.pi)  # periodic; the range: `_bounded`
     return la, e, R, t, d
 
 

@@ -20,7 +20,20 @@ import lineax as lx
 import optimistix as optx
 
 from .cache import kernel_jit, persistent_kernel
-from .chart import BEND, LOG_SIZE, NUM_DEFORM, TRANSLATION, from_fields, pack, project, to_superquadric, unpack
+from .chart import (
+    BEND,
+    DEFORMATION,
+    EPSILON,
+    LOG_SIZE,
+    NUM_DEFORM,
+    TRANSLATION,
+    from_fields,
+    pack,
+    project,
+    to_superquadric,
+    unpack,
+)
+from .deformation import max_curvature
 from .initial import bend_starts, initial_states, moment_starts, switched
 from .lm import capped, cost_of, levenberg_marquardt
 from .padding import CHUNK_POINTS, MULTISTART_CANDIDATES
@@ -121,6 +134,19 @@ def _deformation_pays(cost_deformed, cost_plain, n):
     return jnp.isfinite(cost_deformed) & (gain > 4.0 * jnp.log(n))
 
 
+BOUND_TOLERANCE = 1e-3
+"""A deformation within this fraction of its range's end sits on the bound (`_off_bounds`)."""
+
+
+def _off_bounds(theta):
+    """Whether theta's deformation lies inside its valid range (`chart.clip_deformation`), off its
+    bounds: one on a bound is not a deformed superquadric the data chose but the edge of the family
+    (tapering to a point, a bend folding the solid), and is not kept (issue 14)."""
+    d, la, e = theta[DEFORMATION], theta[LOG_SIZE], theta[EPSILON]
+    k_max = max_curvature(la, e[1], d[:2], d[3])
+    return jnp.all(jnp.abs(d[:2]) < 1.0 - BOUND_TOLERANCE) & (d[2] < (1.0 - BOUND_TOLERANCE) * k_max)
+
+
 def fit_one(points, mask, theta0, opts):
     """Fit one padded problem; points (N, 3) with mask (N,); theta0 (P,) or None (original units)."""
     dtype = points.dtype
@@ -150,9 +176,8 @@ def fit_one(points, mask, theta0, opts):
         nested = adjoint.apply(_solve, _stationarity, (pn, mask, starts, opts), frozenset())
         choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
         theta, (cost, conv, weight) = choose(nested[1][0] < cost, nested, (theta, (cost, conv, weight)))
-        theta, (cost, conv, weight) = choose(
-            _deformation_pays(cost, aux_u[0], n), (theta, (cost, conv, weight)), (flat, aux_u)
-        )
+        keep = _deformation_pays(cost, aux_u[0], n) & _off_bounds(theta)
+        theta, (cost, conv, weight) = choose(keep, (theta, (cost, conv, weight)), (flat, aux_u))
     theta = theta.at[LOG_SIZE].add(jnp.log(scale)).at[TRANSLATION].set(theta[TRANSLATION] * scale + centre)
     if opts.deform:
         theta = theta.at[BEND.start].divide(scale)

@@ -13,7 +13,8 @@ class Status(enum.IntFlag):
     """Quality flags of one fit, combined bitwise in `Fit.status` (0 = `OK`). Data, never an exception.
 
     - `MAX_STEPS`: the last LM steps still lowered the cost (not converged in `max_steps`).
-    - `BOUND_ACTIVE`: an exponent (or a tapering / bending parameter) sits on its bound.
+    - `BOUND_ACTIVE`: an exponent sits on its bound (a deformation never does: one on its bound is
+      not kept, `FitOptions.deform`).
     - `LARGE_RESIDUAL`: the median eq. 10 distance exceeds 3x the given `noise` (without one: 2 % of
       the mean size of the model).
     - `DEGENERATE`: the points are identical or collinear, or the warm start is not finite / positive.

@@ -427,3 +427,48 @@ def test_bent_truths_are_recovered_in_any_bending_plane():
     assert np.all(iou >= 0.95), iou
     ka = np.asarray(out.superquadric.bend[:, 0] * out.superquadric.size[:, 2])
     np.testing.assert_allclose(ka, np.asarray(stacked.bend[:, 0] * stacked.size[:, 2]), rtol=0.2)
+
+
+@pytest.mark.parametrize(
+    "e2, taper, alpha",
+    [(0.3, (0.0, 0.0), 0.4), (1.0, (0.5, -0.3), 2.0), (1.7, (-0.8, 0.6), -1.0), (1.0, (0.0, 0.0), 0.0)],
+)
+def test_max_curvature_is_where_the_bend_would_fold_the_solid(e2, taper, alpha):
+    """`deformation.max_curvature` is 1 / r_max, r_max the farthest reach of the model towards the
+    bending plane (while that is below pi / a3): a dense sample of an untapered surface reaches 97-100%
+    of it, none beyond, so at the bound 1 - k r > 0 on the whole solid but for its extreme points. With
+    tapering it bounds the reach from above (the widest extents at both ends taken together): no point
+    beyond it, the sample reaching 70% of it or more."""
+    from sqjax.deformation import max_curvature
+    from sqjax.mesh import sample_surface
+
+    size = np.array([0.7, 0.4, 1.0])
+    sq = Superquadric.create(size, (0.6, e2), taper=taper)
+    pts = sample_surface(sq, 60_000, seed=1)
+    r = pts[:, 0] * np.cos(alpha) + pts[:, 1] * np.sin(alpha)
+    k = float(max_curvature(jnp.log(jnp.asarray(size)), e2, jnp.asarray(taper), alpha))
+    assert k < np.pi / size[2]
+    assert (0.97 if taper == (0.0, 0.0) else 0.7) <= k * r.max() <= 1.0 + 1e-4, k * r.max()
+    np.testing.assert_allclose(max_curvature(np.log(size), e2, np.asarray(taper), alpha, xp=np), k, rtol=1e-5)
+
+
+def test_fitted_deformations_stay_off_the_ends_of_their_range():
+    """https://github.com/sqjax/sqjax/issues/14: a deformation is kept only inside its valid range,
+    off its bounds (|taper| < 1, bending k below `max_curvature`): on the upper half of half a torus
+    (a curved tube seen from above, no superquadric shape) the fit kept a tapering of -1, a model tapered
+    to a point, and on a thin leg of the pyvista ant it kept a bend of curvature 1e9 (a cross-section
+    swept round an axis, no bent superquadric) with 40x less cost. Either sits on the edge of the
+    family, and the undeformed fit is returned instead."""
+    import trimesh
+
+    from sqjax.deformation import max_curvature
+
+    tube = trimesh.creation.torus(major_radius=0.5, minor_radius=0.06)
+    p, _ = trimesh.sample.sample_surface(tube, 4000, seed=1)
+    p = p[(np.arctan2(p[:, 1], p[:, 0]) % (2 * np.pi) <= np.pi) & (p[:, 2] > -0.01)][:600]
+    p = p + np.random.default_rng(0).normal(0.0, 0.003, p.shape)
+    sq = fit(p, deform=True).superquadric
+    taper, bend = np.asarray(sq.taper), np.asarray(sq.bend)
+    k_max = max_curvature(np.log(np.asarray(sq.size)), float(sq.epsilon[1]), taper, bend[1], xp=np)
+    assert np.all(np.abs(taper) < 1.0 - solver.BOUND_TOLERANCE), taper
+    assert bend[0] < (1.0 - solver.BOUND_TOLERANCE) * k_max, (bend, k_max)
