@@ -472,3 +472,20 @@ def test_fitted_deformations_stay_off_the_ends_of_their_range():
     k_max = max_curvature(np.log(np.asarray(sq.size)), float(sq.epsilon[1]), taper, bend[1], xp=np)
     assert np.all(np.abs(taper) < 1.0 - solver.BOUND_TOLERANCE), taper
     assert bend[0] < (1.0 - solver.BOUND_TOLERANCE) * k_max, (bend, k_max)
+
+
+def test_max_curvature_and_its_gradient_are_finite_everywhere():
+    """No NaN from `max_curvature` or its gradient for any finite input: bending planes along an axis
+    (a zero reach component), exponents at and beyond the fitter's range (e2 = 2 and more: a star-shaped
+    cross-section), tapering at +-1, tiny and huge sizes."""
+    from sqjax.deformation import max_curvature
+
+    grad = jax.grad(lambda *a: max_curvature(*a), argnums=(0, 1, 2, 3))
+    for la in (jnp.zeros(3), jnp.array([-20.0, 3.0, 0.5]), jnp.array([5.0, -5.0, 20.0])):
+        for e2 in (0.1, 1.0, 1.9, 2.0, 3.0):
+            for taper in ((0.0, 0.0), (1.0, -1.0)):
+                for alpha in (0.0, np.pi / 2, -np.pi, 0.7):
+                    args = (la, jnp.float32(e2), jnp.asarray(taper, jnp.float32), jnp.float32(alpha))
+                    k = max_curvature(*args)
+                    assert np.isfinite(float(k)) and float(k) > 0.0
+                    assert all(np.all(np.isfinite(np.asarray(g))) for g in grad(*args)), (la, e2, taper, alpha)
