@@ -78,9 +78,9 @@ def max_curvature(log_size, e2, taper, alpha, xp=jnp):
     reaches r_max = (|a1 cos alpha|^p + |a2 sin alpha|^p)^(1/p) in the direction alpha (its support
     function, the dual norm: p = 2 / (2 - e2)); with tapering, a1 (1 + |Kx|) and a2 (1 + |Ky|) stand for
     a1 and a2, the widest tapered extents taken together: an upper bound of the reach (tight without
-    tapering), so that within the range the solid never folds. Beyond it the fitted "bend" is another shape: k -> inf
-    sweeps the cross-section round an axis (a solid of revolution), which fits a ring or a curved
-    limb better than any bent superquadric does."""
+    tapering), so that within the range the solid never folds. Beyond it the fitted "bend" is another
+    shape: k -> inf sweeps the cross-section round an axis (a solid of revolution), which fits a ring
+    or a curved limb better than any bent superquadric does."""
     a = xp.exp(log_size)
     # e2 >= 2 (a star-shaped cross-section) reaches farthest at a vertex on an axis: the max, which
     # p = 100 gives within 1% from above (p stays finite for any e2 a user's epsilon_range allows)

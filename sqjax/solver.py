@@ -94,9 +94,14 @@ def _multistart(points, mask, opts):
 
 def _solve(inputs):
     points, mask, theta0, opts, _ = inputs  # the adjoint appends a while-loop implementation
-    if theta0 is not None and theta0.ndim == 2:  # several warm starts: the best
+    if theta0 is not None and theta0.ndim == 2:  # several warm starts: the best (deformed: off its bounds)
         lm = lambda th: levenberg_marquardt(unpack(th, opts.deform), points, mask, opts, opts.max_steps)
-        state, cost, conv = _best(*jax.vmap(lm)(theta0))
+        out = jax.vmap(lm)(theta0)
+        scores = None
+        if opts.deform:
+            ok = jax.vmap(lambda *s: _off_bounds(pack(*s, deform=True)))(*out[0])
+            scores = jnp.where(ok, out[1], jnp.inf)
+        state, cost, conv = _best(*out, scores=scores)
     elif theta0 is not None:
         state, cost, conv = levenberg_marquardt(unpack(theta0, opts.deform), points, mask, opts, opts.max_steps)
     elif opts.multistart:
@@ -175,7 +180,10 @@ def fit_one(points, mask, theta0, opts):
         starts = jax.lax.stop_gradient(jnp.concatenate([flat[None], bent]))
         nested = adjoint.apply(_solve, _stationarity, (pn, mask, starts, opts), frozenset())
         choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
-        theta, (cost, conv, weight) = choose(nested[1][0] < cost, nested, (theta, (cost, conv, weight)))
+        # the cheaper of the two deformed fits, of those off their bounds (`_off_bounds`)
+        ok, nested_ok = _off_bounds(theta), _off_bounds(nested[0])
+        better = nested_ok & (~ok | (nested[1][0] < cost))
+        theta, (cost, conv, weight) = choose(better, nested, (theta, (cost, conv, weight)))
         keep = _deformation_pays(cost, aux_u[0], n) & _off_bounds(theta)
         theta, (cost, conv, weight) = choose(keep, (theta, (cost, conv, weight)), (flat, aux_u))
     theta = theta.at[LOG_SIZE].add(jnp.log(scale)).at[TRANSLATION].set(theta[TRANSLATION] * scale + centre)
