@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -73,10 +74,7 @@ def main(argv=None) -> int:
         ]
         found = {"full": seg.labels, "upsampled": np.where(image.valid, near, 0)}
         grid_truth, grid_ignore = bench.visible_truth(bench.mosd_truth(image.subsample(step).labels))
-        truth = bench.mosd_truth(image.labels)
-        small = np.flatnonzero(np.bincount(truth.ravel()) < step * step * bench.MIN_VISIBLE)
-        ignore = np.isin(truth, small[small > 0])
-        truth = np.where(ignore, 0, truth)
+        truth, ignore = bench.visible_truth(bench.mosd_truth(image.labels), step * step * bench.MIN_VISIBLE)
         row = {"scene": f.stem, "parts": len(seg.parts), "run_seconds": seg.timings["run"]}
         working = sqjax.hoover(grid_truth, coarse, tolerance=0.8, ignore=grid_ignore)
         row["working"], row["truth_parts"] = working.correct, working.n_truth
@@ -107,7 +105,7 @@ def main(argv=None) -> int:
     )
     out = {
         "machine": machine(cpu_devices=args.devices),
-        "date": __import__("datetime").date.today().isoformat(),
+        "date": time.strftime("%Y-%m-%d"),
         "command": "python benchmarks/full_size.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "summary": summary,
         "rows": rows,

@@ -70,10 +70,10 @@ def peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux
 
 
-def visible_truth(labels):
-    """Truth labels with parts of fewer than MIN_VISIBLE pixels set to 0, and the mask of those pixels."""
+def visible_truth(labels, min_visible=MIN_VISIBLE):
+    """Truth labels with parts of fewer than `min_visible` pixels set to 0, and the mask of those pixels."""
     labels = np.asarray(labels)
-    small = np.flatnonzero(np.bincount(labels.ravel()) < MIN_VISIBLE)
+    small = np.flatnonzero(np.bincount(labels.ravel()) < min_visible)
     ignore = np.isin(labels, small[small > 0])
     return np.where(ignore, 0, labels), ignore
 

@@ -368,7 +368,7 @@ def fit(
     finite_out = finite_out & xp.all(xp.isfinite(eps), -1) & xp.all(xp.isfinite(R), (-2, -1))
     median = _nanmedian(xp, xp.where(mask, dist, xp.nan), 1)
     status = status_flags(
-        xp, options, size, eps, taper, conv, median, xp.sum(mask, -1), degenerate, init_ok, finite_out, far, noise
+        xp, options, size, eps, conv, median, xp.sum(mask, -1), degenerate, init_ok, finite_out, far, noise
     )
     converged = conv & ((status & int(FAILED)) == 0)
     # never hand out NaN: a non-finite fit is replaced by the moment-free unit sphere at the centre

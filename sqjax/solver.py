@@ -184,7 +184,7 @@ def fit_one(points, mask, theta0, opts):
         ok, nested_ok = _off_bounds(theta), _off_bounds(nested[0])
         better = nested_ok & (~ok | (nested[1][0] < cost))
         theta, (cost, conv, weight) = choose(better, nested, (theta, (cost, conv, weight)))
-        keep = _deformation_pays(cost, aux_u[0], n) & _off_bounds(theta)
+        keep = _deformation_pays(cost, aux_u[0], n) & (better | ok)  # the chosen one is off its bounds
         theta, (cost, conv, weight) = choose(keep, (theta, (cost, conv, weight)), (flat, aux_u))
     theta = theta.at[LOG_SIZE].add(jnp.log(scale)).at[TRANSLATION].set(theta[TRANSLATION] * scale + centre)
     if opts.deform:

@@ -44,15 +44,13 @@ FAILED = Status.DEGENERATE | Status.TOO_FEW_POINTS | Status.NONFINITE
 """Flags under which `converged` is False whatever the LM steps did."""
 
 
-def status_flags(xp, opts, size, eps, taper, conv, median_distance, n, degenerate, init_ok, finite, far, noise):
+def status_flags(xp, opts, size, eps, conv, median_distance, n, degenerate, init_ok, finite, far, noise):
     """Per-problem `Status` flags (K,) int32 from the kernel outputs (numpy on the host, jnp when traced):
-    sizes (K, 3), exponents (K, 2), taper (K, 2), converged (K,), the median distance of each problem's
+    sizes (K, 3), exponents (K, 2), converged (K,), the median distance of each problem's
     points (K,), their count n (K,), the degenerate / valid-start / finite / far-point flags (K,)."""
     lo, hi = opts.epsilon_range
     tol = 1e-3 * (hi - lo)
     bound = xp.any((eps <= lo + tol) | (eps >= hi - tol), -1)
-    if opts.deform:
-        bound = bound | xp.any(xp.abs(taper) >= 1.0 - 1e-3, -1)
     limit = 3.0 * noise if noise is not None else 0.02 * xp.mean(size, -1)
     flags = [
         (~conv, Status.MAX_STEPS),
