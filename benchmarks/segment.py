@@ -1,6 +1,6 @@
 """Segmentation benchmark: recover-and-select on every suite, with the same defaults for all.
 
-    python benchmarks/segment.py                      # every suite (~15 min on 2 cores)
+    python benchmarks/segment.py                      # every suite (~16 min on 2 cores)
     python benchmarks/segment.py --quick              # a few scenes of each suite
     python benchmarks/segment.py --suites mosd,multipart --out benchmarks/out/segment.json
     python benchmarks/segment.py --figures benchmarks/figures   # also figures of the worst scenes
@@ -26,6 +26,12 @@ Suites:
   seven multi-part object kinds sampled all round (`closed_cloud`: the whole surface, as a registered
   scan or a mesh's samples give it, not one view) at two densities, scored per part and reported apart
   from the views (the clouds figure stays comparable with earlier runs).
+- `rooms`: Bobkov's office rooms (../shared/data/bobkov_indoor_parts: registered laser scans of real
+  chairs and tables, 124k and 238k points, hand-labelled parts), segmented as bare clouds and scored
+  on the labelled points against the fine (part) labels, points labelled 0 (walls, floor, clutter)
+  left out; and room2 thinned to a half and a quarter of its points (a fixed random choice), reported
+  apart (`rooms/density`): the same surfaces at another density, which a cloud's noise estimate
+  (`domain.cloud_noise`, in points) reads differently.
 
 Every suite scores parts with at least `MIN_VISIBLE` = 30 visible pixels (smaller ones are left out of
 the score, their pixels ignored). Scores: Hoover et al. (1996) at T = 0.8 and T = 0.5 (correct, over-,
@@ -56,6 +62,9 @@ from sqjax.scenes import OBJECTS, default_camera, multipart_scene
 
 DATA = Path(os.environ.get("SQJAX_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 MIN_VISIBLE = 30
+ROOMS = ("bobkov_indoor_parts/room2_gt_fine.pcd", "bobkov_indoor_parts/room1_gt_fine.pcd")
+ROOM_DENSITIES = (0.5, 0.25)
+"""Fractions of room2's points in the `rooms` suite's density rows."""
 MESHES = (
     "pyvista_examples/ant.ply",
     "pyvista_examples/airplane.ply",
@@ -103,6 +112,7 @@ def run_scene(image, truth, *, table=None, truth_sq=None, figure=None, found=Non
         found.append(seg.labels)
     row = {
         "found_parts": len(seg.parts),
+        "noise_estimate": float(seg.noise),
         **score(truth, seg.labels, ignore, table),
         "seconds": seg.timings["total"],
         "compile_seconds": seg.timings["compile"],
@@ -189,6 +199,26 @@ def cloud_scenes(mosd_files, step, n_multipart):
 
 CLOSED_SPACINGS = {"dense": 0.015, "sparse": 0.03}
 """Sample spacings of the closed clouds (scene units; objects about 1.2 across): 5-15k and 1-4k points."""
+
+
+def room_scenes(quick: bool):
+    """The `rooms` suite: [(name, thunk returning (points (P, 3), part labels (P,), {}))]: each room,
+    then room2 thinned to each of `ROOM_DENSITIES` (named `density:`)."""
+
+    def room(path, fraction=1.0):
+        points, labels = sqjax.read_points(path, with_labels=True)
+        if fraction < 1.0:
+            keep = np.sort(np.random.default_rng(0).permutation(len(points))[: int(len(points) * fraction)])
+            points, labels = points[keep], labels[keep]
+        return points, labels, {}
+
+    paths = [DATA / r for r in ROOMS if (DATA / r).exists()]
+    if not paths:
+        print(f"Bobkov's rooms not found under {DATA}: skipped (set SQJAX_DATA)", file=sys.stderr)
+        return []
+    name = lambda p: p.stem.split("_")[0]
+    rows = [(name(p), lambda p=p: room(p)) for p in paths[: 1 if quick else None]]
+    return rows + [(f"density:{name(paths[0])}:{f}", lambda f=f: room(paths[0], f)) for f in ROOM_DENSITIES]
 
 
 def closed_cloud(s, spacing, noise=0.005):
@@ -280,7 +310,7 @@ def mesh_scene(path, view, shape=(120, 160), noise=0.005):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--suites", default="synthetic,mosd,multipart,meshes,clouds")
+    ap.add_argument("--suites", default="synthetic,mosd,multipart,meshes,clouds,rooms")
     ap.add_argument("--scenes", type=int, default=50, help="synthetic scenes")
     ap.add_argument("--multipart", type=int, default=42, help="multi-part object scenes")
     ap.add_argument("--mosd-step", type=int, default=4)
@@ -363,6 +393,8 @@ def main(argv=None):
         ]
     if "clouds" in suites:
         scenes["clouds"] = cloud_scenes(mosd_files[:: 6 if args.quick else 3], args.mosd_step, (n_mp + 1) // 2)
+    if "rooms" in suites:
+        scenes["rooms"] = room_scenes(args.quick)
 
     categories = mosd_categories()
     for suite, items in scenes.items():
@@ -383,8 +415,11 @@ def main(argv=None):
             np.savez_compressed(Path(args.labels) / f"{suite}.npz", **{n: f for (n, _), f in zip(items, found)})
         # the clouds suite is scored on its views with truth (as before the closed clouds came: its
         # figure stays comparable), the closed clouds apart, its single objects by their parts
-        scored = [r for r in rows if not r["scene"].startswith(("single:", "closed:"))] or rows
+        # (the rooms at their own density likewise, the thinned room2 apart)
+        scored = [r for r in rows if not r["scene"].startswith(("single:", "closed:", "density:"))] or rows
         results[suite] = {"rows": rows, "summary": summarise(scored)}
+        if suite == "rooms" and len(scored) < len(rows):
+            results[suite]["density"] = summarise([r for r in rows if r["scene"].startswith("density:")])
         if suite == "clouds":
             prefixes = ("mosd", "multipart", "closed", "single")
             kinds = {k: [r for r in rows if r["scene"].startswith(k + ":")] for k in prefixes}
@@ -395,7 +430,7 @@ def main(argv=None):
             results[suite]["categories"] = {
                 c: summarise([r for r in rows if r["category"] == c]) for c in sorted({r["category"] for r in rows})
             }
-        if args.figures and suite != "clouds":
+        if args.figures and suite not in ("clouds", "rooms"):
             worst = sorted(rows, key=lambda r: (r["correct"] - r["truth_parts"], r["scene"]))[: args.worst]
             for r in worst:
                 image, truth, _ = dict(items)[r["scene"]]()
@@ -426,11 +461,13 @@ def print_table(results):
             f"{s['first_scene_compile_seconds']:9.1f}"
         )
 
-    for key in ("synthetic", "mosd", "multipart", "meshes"):
+    for key in ("synthetic", "mosd", "multipart", "meshes", "rooms"):
         if key in results:
             line(key, results[key]["summary"])
             for c, s in results[key].get("categories", {}).items():
                 line(f"  mosd/{c}", s)
+            if "density" in results[key]:
+                line(f"{key}/density", results[key]["density"])
     if "clouds" in results:
         line("clouds", results["clouds"]["summary"])
         for kind in ("mosd", "multipart", "closed"):
