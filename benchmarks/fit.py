@@ -4,6 +4,7 @@
     python benchmarks/fit.py --quick             # K = 16, N in {256, 1024}, f32
     python benchmarks/fit.py --out benchmarks/out/fit.json
     python benchmarks/fit.py --suites outliers loop slabs deform --quick    # the issue-14 suites
+    python benchmarks/fit.py --suites clean --starts moments rim         # what one start family earns
 
 Measured 2026-12-02 on the shared 2-core development VM, alone, `python benchmarks/fit.py --quick
 --suites outliers slabs --devices 1 --seconds 0.5` (the distance residual, the default), jax 0.10.2,
@@ -115,6 +116,20 @@ def _parse(argv):
     ap.add_argument("--outlier-k", type=int, default=200, help="problems per outlier fraction")
     ap.add_argument("--loop", type=int, default=200, help="problems (each with its own N) in the loop suite")
     ap.add_argument("--clean", type=int, default=200, help="problems (N 150..3000) in the clean suite")
+    ap.add_argument(
+        "--starts",
+        nargs="+",
+        default=None,
+        choices=["moments", "rim", "quadric"],
+        help="the clean suite's start families (FitOptions.starts; default all), to measure what each earns",
+    )
+    ap.add_argument(
+        "--epsilon-starts",
+        type=float,
+        nargs="+",
+        default=None,
+        help="the clean suite's starting exponents, e1 = e2 each (FitOptions.epsilon_starts; default 1 1.6)",
+    )
     ap.add_argument(
         "--cache",
         metavar="DIR",
@@ -421,7 +436,10 @@ def suite_clean(args, results):
         pts[k, :n] = p[0]
     for robust in (False, True):
         t0 = time.perf_counter()
-        out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual))
+        starts = {} if args.starts is None else {"starts": tuple(args.starts)}
+        if args.epsilon_starts is not None:
+            starts["epsilon_starts"] = tuple((e, e) for e in args.epsilon_starts)
+        out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual, **starts))
         jax.block_until_ready(out)
         seconds = time.perf_counter() - t0
         sc = iou(truth, out.superquadric)
@@ -435,6 +453,7 @@ def suite_clean(args, results):
             "iou_p10": float(np.percentile(sc, 10)),
             "gross_failures": float(np.mean(sc < 0.5)),
             "seconds_with_compile": seconds,
+            **{k: [list(e) if isinstance(e, tuple) else e for e in v] for k, v in starts.items()},
         }
         results["suites"].append(row)
         print(
