@@ -182,7 +182,12 @@ def cloud_noise(points: np.ndarray, window: int, samples: int = 300) -> float:
     would span the parts of small objects (a chair's legs and seat): that gave 3-4 times the noise on
     the multi-part clouds. `PART_WINDOWS` measured over the benchmark's clouds suite and Bobkov's
     rooms (benchmarks/RESULTS.md, 2026-12-03): 4 windows 77.6% correct, 8 windows 78.9%, 16 windows
-    74.5% (multi-part objects merge), the single-object clouds fewer parts the larger it is."""
+    74.5% (multi-part objects merge), the single-object clouds fewer parts the larger it is.
+
+    The scale is counted in points, so the estimate depends on the cloud's density: where the residual
+    grows with the patch's area (registered scans), a cloud thinned to a quarter reads several times the
+    noise (Bobkov's room2: 8.6 mm, at 1/2 13.5 mm, at 1/4 30 mm, and 12, 7, 3 of its 48 parts found;
+    `benchmarks/segment.py`'s rooms suite). Compare clouds of one scene at one given noise."""
     P = np.asarray(points, np.float64)
     small, large = max(window // 2, 8), min(2 * window, P.shape[0])
     if large <= small:
