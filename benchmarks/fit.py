@@ -434,11 +434,11 @@ def suite_clean(args, results):
         t, p = problems(int(n), 1, seed=20_000 + k)
         truth.append(t[0])
         pts[k, :n] = p[0]
+    starts = {} if args.starts is None else {"starts": tuple(args.starts)}
+    if args.epsilon_starts is not None:
+        starts["epsilon_starts"] = tuple((e, e) for e in args.epsilon_starts)
     for robust in (False, True):
         t0 = time.perf_counter()
-        starts = {} if args.starts is None else {"starts": tuple(args.starts)}
-        if args.epsilon_starts is not None:
-            starts["epsilon_starts"] = tuple((e, e) for e in args.epsilon_starts)
         out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual, **starts))
         jax.block_until_ready(out)
         seconds = time.perf_counter() - t0
@@ -453,7 +453,8 @@ def suite_clean(args, results):
             "iou_p10": float(np.percentile(sc, 10)),
             "gross_failures": float(np.mean(sc < 0.5)),
             "seconds_with_compile": seconds,
-            **{k: [list(e) if isinstance(e, tuple) else e for e in v] for k, v in starts.items()},
+            "starts": args.starts,  # None: the defaults
+            "epsilon_starts": args.epsilon_starts,
         }
         results["suites"].append(row)
         print(

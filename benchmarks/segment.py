@@ -418,8 +418,9 @@ def main(argv=None):
         # (the rooms at their own density likewise, the thinned room2 apart)
         scored = [r for r in rows if not r["scene"].startswith(("single:", "closed:", "density:"))] or rows
         results[suite] = {"rows": rows, "summary": summarise(scored)}
-        if suite == "rooms" and len(scored) < len(rows):
-            results[suite]["density"] = summarise([r for r in rows if r["scene"].startswith("density:")])
+        thinned = [r for r in rows if r["scene"].startswith("density:")]
+        if thinned:
+            results[suite]["density"] = summarise(thinned)
         if suite == "clouds":
             prefixes = ("mosd", "multipart", "closed", "single")
             kinds = {k: [r for r in rows if r["scene"].startswith(k + ":")] for k in prefixes}
