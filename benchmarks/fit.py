@@ -524,7 +524,9 @@ def suite_slabs(args, results):
 def suite_deform(args, results):
     K = 32 if args.quick else 100
     truth, pts = problems(200, K, seed=15)
-    out = sqjax.fit(pts, deform=True, residual=args.residual)
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(sqjax.fit(pts, deform=True, residual=args.residual))
+    first = time.perf_counter() - t0  # the deformed kernel's compile (every suite below has its shapes)
     taper = np.abs(np.asarray(out.superquadric.taper)).max(-1)
     k = np.asarray(out.superquadric.bend)[:, 0] * np.asarray(out.superquadric.size).max(-1)
     sc = iou(truth, out.superquadric)
@@ -535,17 +537,21 @@ def suite_deform(args, results):
         "undeformed_bend_ka_below_0.05": float(np.mean(k < 0.05)),
         "taper_at_bound": float(np.mean(taper > 0.999)),
         "iou_median": float(np.median(sc)),
+        "first_call_seconds": first,
     }
     results["suites"].append(row)
     print(
         f"deform on undeformed views: |taper| < 0.05 in {row['undeformed_taper_below_0.05']:.0%}, k a < 0.05 in "
         f"{row['undeformed_bend_ka_below_0.05']:.0%}, |taper| at the bound in {row['taper_at_bound']:.0%}; "
-        f"IoU median {row['iou_median']:.3f}",
+        f"IoU median {row['iou_median']:.3f}; first call {first:.1f} s (compile included)",
         flush=True,
     )
     for kind in ("tapered", "bent"):
         truth_sq, pts = deformed_problems(200, K, kind, seed=16)
         out = sqjax.fit(pts, deform=True, residual=args.residual)
+        t0 = time.perf_counter()
+        jax.block_until_ready(sqjax.fit(pts, deform=True, residual=args.residual))  # steady state
+        steady = time.perf_counter() - t0
         sc = sqjax.evaluate.volume_iou_batch(
             truth_sq, jax.tree.map(lambda v: np.asarray(v, np.float32), out.superquadric), n=20_000
         )
@@ -555,11 +561,12 @@ def suite_deform(args, results):
             "iou_median": float(np.median(sc)),
             "iou_above_0.95": float(np.mean(sc >= 0.95)),
             "gross_failures": float(np.mean(sc < 0.5)),
+            "fits_per_s": K / steady,
         }
         results["suites"].append(row)
         print(
             f"deform on {kind} truths: IoU median {row['iou_median']:.3f}, >= 0.95 in {row['iou_above_0.95']:.0%}, "
-            f"gross {row['gross_failures']:.0%}",
+            f"gross {row['gross_failures']:.0%}; {K / steady:.1f} fits/s (after the first call)",
             flush=True,
         )
 

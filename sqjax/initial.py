@@ -185,6 +185,77 @@ def bend_starts(state, points, mask):
     return las, es, Rs, ts, ds
 
 
+TAPER_START_LIMIT = 0.9
+"""`taper_starts` clips its estimate to |K| <= this, inside the valid range |K| < 1 (`solver._off_bounds`)."""
+
+
+TAPER_BINS = 8
+"""Slices of the part's height in which `taper_starts` measures the cross-section's reach."""
+
+
+def taper_starts(state, points, mask):
+    """Tapered candidates of an undeformed solution (log a, e, R, t, d): each of its axes in turn as the
+    tapering axis z (itself and the two `switched` forms), tapered as the points' width runs along z.
+
+    Tapering scales the cross-section at height z by (1 + K z / a3) (`deformation.taper_points`). So in
+    the part's frame the lateral second moments of the points, regressed on (1, z / a3), change with z
+    along the part's own x and y axes: the eigenvectors of their slope turn the undeformed solution's
+    lateral axes onto the part's (an untapered fit of a nearly round cross-section has them anywhere,
+    and tapers of opposite sign along x and y cancel in a frame turned 45 degrees from it). Then the
+    points' lateral distance |x|, regressed likewise, has slope / intercept = K, for any sampling of the
+    surface that does not depend on z. From the untapered optimum LM finds neither the turn nor a taper
+    along another axis, and the multistart starts untapered. Returns a stacked state (3, ...) with
+    d = (Kx, Ky, 0, 0), |K| <= `TAPER_START_LIMIT`, lateral sizes those of the points untapered by K."""
+    la, e, R, t, _ = state
+    sw = switched(state)
+    las = jnp.concatenate([la[None], sw[0]])
+    es = jnp.concatenate([e[None], sw[1]])
+    Rs = jnp.concatenate([R[None], sw[2]])
+    w = mask.astype(points.dtype)
+    dtype = points.dtype
+
+    def regress(g, z, values):  # weighted least squares of values (M, N) on (g, g z): (2, M)
+        A = jnp.stack([g, g * z], 1) * w[:, None]
+        AtA = A.T @ A + 1e-6 * jnp.eye(2, dtype=dtype) * jnp.maximum(jnp.sum(w), 1.0)
+        return jnp.linalg.solve(AtA, A.T @ (values * w).T)
+
+    def one(la, e, R):
+        x = R.T @ (points - t[:, None])  # (3, N) model frame
+        z = x[2] / jnp.exp(la[2])
+        # the untapered profile: the cross-section's scale at height z, (1 - |z|^(2/e1))^(e1/2)
+        u = jnp.clip(jnp.abs(z), 0.0, 1.0)
+        g = jnp.maximum(1.0 - u ** (2.0 / e[0]), 0.0) ** (0.5 * e[0])
+        slope = regress(g * g, z, jnp.stack([x[0] * x[0], x[1] * x[1], x[0] * x[1]]))[1]
+        phi = 0.5 * jnp.arctan2(2.0 * slope[2], slope[0] - slope[1])  # the slope's eigenvectors
+        c, s = jnp.cos(phi), jnp.sin(phi)
+        turn = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype)
+        lateral = turn[:2, :2].T @ x[:2]
+        # the cross-section's reach along x and y at height z is a g(z) (1 + K z): the largest |x|, |y|
+        # in each of `TAPER_BINS` slices of z, regressed on (g, g z) at the slices' centres (a mean of
+        # |x| would not do: where y is the wider, more of the perimeter lies on the sides along x)
+        B = TAPER_BINS
+        bins = jnp.clip(jnp.floor((z + 1.0) * (B / 2)), 0, B - 1).astype(jnp.int32)
+        reach = jax.ops.segment_max(jnp.where(mask, jnp.abs(lateral), -jnp.inf).T, bins, num_segments=B)  # (B, 2)
+        filled = jnp.isfinite(reach[:, 0])
+        zb = (jnp.arange(B, dtype=dtype) + 0.5) * (2.0 / B) - 1.0
+        gb = jnp.where(filled, jnp.maximum(1.0 - jnp.abs(zb) ** (2.0 / e[0]), 0.0) ** (0.5 * e[0]), 0.0)
+        A = jnp.stack([gb, gb * zb], 1)
+        AtA = A.T @ A + 1e-6 * jnp.eye(2, dtype=dtype)
+        fit = jnp.linalg.solve(AtA, A.T @ jnp.where(filled[:, None], reach, 0.0))  # (2, 2)
+        K = fit[1] / jnp.maximum(fit[0], jnp.finfo(dtype).tiny)
+        K = jnp.clip(jnp.where(jnp.isfinite(K), K, 0.0), -TAPER_START_LIMIT, TAPER_START_LIMIT)
+        # the untapered solution is as wide as the part's widest end: the lateral reach of the points
+        # untapered by K (no wider than it)
+        reach = jnp.max(jnp.abs(lateral / jnp.maximum(1.0 + K[:, None] * z, 1.0 - TAPER_START_LIMIT)) * w, axis=1)
+        width = jnp.exp(la[:2])
+        width = jnp.where(jnp.abs(c) >= jnp.abs(s), width, width[::-1])  # turned by more than 45 degrees
+        la = la.at[:2].set(jnp.log(jnp.clip(reach, 0.25 * width, width)))
+        return la, R @ turn, jnp.concatenate([K, jnp.zeros(2, dtype)])
+
+    las, Rs, ds = jax.vmap(one)(las, es, Rs)
+    return las, es, Rs, jnp.broadcast_to(t, (3, 3)), ds
+
+
 # ----------------------------------------------------------------------------------------------------
 # [host] segmentation's starts of point sets
 

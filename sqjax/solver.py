@@ -34,7 +34,7 @@ from .chart import (
     unpack,
 )
 from .deformation import max_curvature
-from .initial import bend_starts, initial_states, moment_starts, switched
+from .initial import bend_starts, initial_states, moment_starts, switched, taper_starts
 from .lm import capped, cost_of, levenberg_marquardt
 from .padding import CHUNK_POINTS, MULTISTART_CANDIDATES
 from .parallel import shard
@@ -139,6 +139,9 @@ def _deformation_pays(cost_deformed, cost_plain, n):
     return jnp.isfinite(cost_deformed) & (gain > 4.0 * jnp.log(n))
 
 
+DEFORMED_ROUNDS = 2
+"""Rounds of deformed starts in `fit_one` (a third gained nothing on `benchmarks/fit.py --suites deform`)."""
+
 BOUND_TOLERANCE = 1e-3
 """A deformation within this fraction of its range's end sits on the bound (`_off_bounds`)."""
 
@@ -174,17 +177,29 @@ def fit_one(points, mask, theta0, opts):
         theta_u, aux_u = adjoint.apply(_solve, _stationarity, (pn, mask, th0, plain), frozenset())
         # the deformed model also starts from the undeformed optimum (zero deformation), so that its
         # gain over it measures what the 4 parameters add, not a better local minimum; and from that
-        # optimum bent along its centre line, each axis in turn (`initial.bend_starts`)
+        # optimum bent along its centre line and tapered along its width, each axis in turn
+        # (`initial.bend_starts`, `initial.taper_starts`). A second round starts likewise from the best
+        # deformed fit of the first: the bend and taper read in its frame are nearer the part's.
         flat = jnp.concatenate([theta_u, jnp.zeros(NUM_DEFORM, dtype)])
-        bent = jax.vmap(lambda *s: pack(*s, deform=True))(*bend_starts(unpack(theta_u, False), pn, mask))
-        starts = jax.lax.stop_gradient(jnp.concatenate([flat[None], bent]))
-        nested = adjoint.apply(_solve, _stationarity, (pn, mask, starts, opts), frozenset())
         choose = lambda flag, a, b: jax.tree.map(lambda u, v: jnp.where(flag, u, v), a, b)
-        # the cheaper of the two deformed fits, of those off their bounds (`_off_bounds`)
-        ok, nested_ok = _off_bounds(theta), _off_bounds(nested[0])
-        better = nested_ok & (~ok | (nested[1][0] < cost))
-        theta, (cost, conv, weight) = choose(better, nested, (theta, (cost, conv, weight)))
-        keep = _deformation_pays(cost, aux_u[0], n) & (better | ok)  # the chosen one is off its bounds
+
+        def deformed_round(carry, _):
+            best, ok, base = carry
+            undeformed = unpack(base[: plain.num_params], False)
+            starts = [base[None]] + [
+                jax.vmap(lambda *s: pack(*s, deform=True))(*make(undeformed, pn, mask))
+                for make in (bend_starts, taper_starts)
+            ]
+            starts = jax.lax.stop_gradient(jnp.concatenate(starts))
+            nested = adjoint.apply(_solve, _stationarity, (pn, mask, starts, opts), frozenset())
+            # the cheaper of the two deformed fits, of those off their bounds (`_off_bounds`)
+            better = _off_bounds(nested[0]) & (~ok | (nested[1][0] < best[1][0]))
+            best = choose(better, nested, best)
+            return (best, ok | better, best[0]), None
+
+        carry = ((theta, (cost, conv, weight)), _off_bounds(theta), flat)
+        ((theta, (cost, conv, weight)), ok, _), _ = jax.lax.scan(deformed_round, carry, None, DEFORMED_ROUNDS)
+        keep = _deformation_pays(cost, aux_u[0], n) & ok  # the chosen one is off its bounds
         theta, (cost, conv, weight) = choose(keep, (theta, (cost, conv, weight)), (flat, aux_u))
     theta = theta.at[LOG_SIZE].add(jnp.log(scale)).at[TRANSLATION].set(theta[TRANSLATION] * scale + centre)
     if opts.deform:
