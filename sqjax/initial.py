@@ -145,6 +145,15 @@ curvature left in their centre line (the parabola is a second-order reading of t
 reads 55-80% of it on sampled bent surfaces, three 75-110%)."""
 
 
+def _each_axis_as_z(state):
+    """An undeformed state (log a, e, R, t, d) with each of its axes in turn as z: itself and its two
+    `switched` forms, stacked (3, ...): (log a, e, R) and the shared centre t."""
+    la, e, R, t, _ = state
+    sw = switched(state)
+    stack = lambda v, i: jnp.concatenate([v[None], sw[i]])
+    return stack(la, 0), stack(e, 1), stack(R, 2), t
+
+
 def bend_starts(state, points, mask):
     """Bent candidates of an undeformed solution (log a, e, R, t, d): each of its axes in turn as the
     bending axis z (itself and the two `switched` forms), bent as the points' centre line runs.
@@ -155,11 +164,7 @@ def bend_starts(state, points, mask):
     atan2(c2y, c2x), and the constant moves the centre onto that line. From the unbent optimum itself
     LM cannot find a bend: at k = 0 the cost does not depend on alpha, and a bend out of the plane
     alpha = 0 has no first-order gain. Returns a stacked state (3, ...) with d = (0, 0, k, alpha)."""
-    la, e, R, t, _ = state
-    sw = switched(state)
-    las = jnp.concatenate([la[None], sw[0]])
-    es = jnp.concatenate([e[None], sw[1]])
-    Rs = jnp.concatenate([R[None], sw[2]])
+    las, es, Rs, t = _each_axis_as_z(state)
     w = mask.astype(points.dtype)
 
     def one(la, R):
@@ -206,11 +211,7 @@ def taper_starts(state, points, mask):
     surface that does not depend on z. From the untapered optimum LM finds neither the turn nor a taper
     along another axis, and the multistart starts untapered. Returns a stacked state (3, ...) with
     d = (Kx, Ky, 0, 0), |K| <= `TAPER_START_LIMIT`, lateral sizes those of the points untapered by K."""
-    la, e, R, t, _ = state
-    sw = switched(state)
-    las = jnp.concatenate([la[None], sw[0]])
-    es = jnp.concatenate([e[None], sw[1]])
-    Rs = jnp.concatenate([R[None], sw[2]])
+    las, es, Rs, t = _each_axis_as_z(state)
     w = mask.astype(points.dtype)
     dtype = points.dtype
 
