@@ -59,8 +59,8 @@ class FitOptions(eqx.Module):
       With the bent starts (2026-12-04): bent truths 0.969, IoU >= 0.95 in 69% (was 60%), gross 2%.
       With the valid range (2026-12-05): the same figures (undeformed 97% / 99%, tapered median 0.970
       and 76% >= 0.95, bent 0.970 and 69%, gross 2% each). With the taper starts and the second
-      round (2026-12-06): tapered 0.971 and 82%, gross 0%; bent 0.971 and 75%, gross 1%; undeformed
-      98% / 98%; 0.8x the fits/s (13-16 against 21 per s on one core of the 2-core VM).
+      round, the first bend bracketed (2026-12-06): tapered 0.971 and 82%, gross 0%; bent 0.972 and
+      78%, gross 1%; undeformed 98% / 98%; 0.7x the fits/s (14-15 against 21 per s on one core).
     - `epsilon_range`: bounds of the exponents e1, e2 (projection after each step).
     - `residual`: what LM minimises the squares of. `"distance"` (default): each point's signed
       first-order distance to the surface through the root form of F (`_residual_point`), so every
