@@ -61,6 +61,9 @@ class FitOptions(eqx.Module):
       and 76% >= 0.95, bent 0.970 and 69%, gross 2% each). With the taper starts and the second
       round, the first bend bracketed (2026-12-06): tapered 0.971 and 82%, gross 0%; bent 0.972 and
       78%, gross 1%; undeformed 98% / 98%; 0.7x the fits/s (14-15 against 21 per s on one core).
+      One solid has several parametrisations (a tapered one with x and y swapped and its tapers
+      negated), and refits of nearby points may return either: differentiate invariants of the
+      solid (distances, volumes), not raw sizes or tapers, across such points.
     - `epsilon_range`: bounds of the exponents e1, e2 (projection after each step).
     - `residual`: what LM minimises the squares of. `"distance"` (default): each point's signed
       first-order distance to the surface through the root form of F (`_residual_point`), so every
