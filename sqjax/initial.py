@@ -202,15 +202,17 @@ def taper_starts(state, points, mask):
     """Tapered candidates of an undeformed solution (log a, e, R, t, d): each of its axes in turn as the
     tapering axis z (itself and the two `switched` forms), tapered as the points' width runs along z.
 
-    Tapering scales the cross-section at height z by (1 + K z / a3) (`deformation.taper_points`). So in
-    the part's frame the lateral second moments of the points, regressed on (1, z / a3), change with z
-    along the part's own x and y axes: the eigenvectors of their slope turn the undeformed solution's
-    lateral axes onto the part's (an untapered fit of a nearly round cross-section has them anywhere,
-    and tapers of opposite sign along x and y cancel in a frame turned 45 degrees from it). Then the
-    points' lateral distance |x|, regressed likewise, has slope / intercept = K, for any sampling of the
-    surface that does not depend on z. From the untapered optimum LM finds neither the turn nor a taper
-    along another axis, and the multistart starts untapered. Returns a stacked state (3, ...) with
-    d = (Kx, Ky, 0, 0), |K| <= `TAPER_START_LIMIT`, lateral sizes those of the points untapered by K."""
+    Tapering scales the cross-section at height z by (1 + K z / a3) (`deformation.taper_points`), and
+    the untapered profile g(z) = (1 - |z / a3|^(2/e1))^(e1/2) scales it too. So in the part's frame the
+    lateral second moments of the points, regressed on (g^2, g^2 z / a3), change with z along the
+    part's own x and y axes: the eigenvectors of their slope turn the undeformed solution's lateral
+    axes onto the part's (an untapered fit of a nearly round cross-section has them anywhere, and
+    tapers of opposite sign along x and y cancel in a frame turned 45 degrees from it). Then the
+    cross-section's reach along each turned axis, the largest |x| in each of `TAPER_BINS` slices of z,
+    regressed on (g, g z / a3), has slope / intercept = K. From the untapered optimum LM finds neither
+    the turn nor a taper along another axis, and the multistart starts untapered. Returns a stacked
+    state (3, ...) with d = (Kx, Ky, 0, 0), |K| <= `TAPER_START_LIMIT`, lateral sizes those of the
+    points untapered by K."""
     las, es, Rs, t = _each_axis_as_z(state)
     w = mask.astype(points.dtype)
     dtype = points.dtype
@@ -231,9 +233,8 @@ def taper_starts(state, points, mask):
         c, s = jnp.cos(phi), jnp.sin(phi)
         turn = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype)
         lateral = turn[:2, :2].T @ x[:2]
-        # the cross-section's reach along x and y at height z is a g(z) (1 + K z): the largest |x|, |y|
-        # in each of `TAPER_BINS` slices of z, regressed on (g, g z) at the slices' centres (a mean of
-        # |x| would not do: where y is the wider, more of the perimeter lies on the sides along x)
+        # the reach at the slices' centres (a mean of |x| would not do: where y is the wider, more of
+        # the perimeter lies on the sides along x, and a taper of 0.5 read as 0.34)
         B = TAPER_BINS
         bins = jnp.clip(jnp.floor((z + 1.0) * (B / 2)), 0, B - 1).astype(jnp.int32)
         reach = jax.ops.segment_max(jnp.where(mask, jnp.abs(lateral), -jnp.inf).T, bins, num_segments=B)  # (B, 2)
