@@ -60,7 +60,7 @@ class FitOptions(eqx.Module):
       With the valid range (2026-12-05): the same figures (undeformed 97% / 99%, tapered median 0.970
       and 76% >= 0.95, bent 0.970 and 69%, gross 2% each). With the taper starts and the second
       round, the first bend bracketed (2026-12-06): tapered 0.971 and 82%, gross 0%; bent 0.972 and
-      78%, gross 1%; undeformed 98% / 98%; 0.7x the fits/s (14-15 against 21 per s on one core).
+      78%, gross 1%; undeformed 98% / 98%; 0.6-0.7x the fits/s (12-15 against 21 per s on one core).
       One solid has several parametrisations (a tapered one with x and y swapped and its tapers
       negated), and refits of nearby points may return either: differentiate invariants of the
       solid (distances, volumes), not raw sizes or tapers, across such points.

@@ -217,18 +217,18 @@ def taper_starts(state, points, mask):
     w = mask.astype(points.dtype)
     dtype = points.dtype
 
-    def regress(g, z, values):  # weighted least squares of values (M, N) on (g, g z): (2, M)
-        A = jnp.stack([g, g * z], 1) * w[:, None]
-        AtA = A.T @ A + 1e-6 * jnp.eye(2, dtype=dtype) * jnp.maximum(jnp.sum(w), 1.0)
-        return jnp.linalg.solve(AtA, A.T @ (values * w).T)
+    def regress(g, z, values, weight):  # weighted least squares of values (M, n) on (g, g z): (2, M)
+        A = jnp.stack([g, g * z], 1) * weight[:, None]
+        AtA = A.T @ A + 1e-6 * jnp.eye(2, dtype=dtype) * jnp.maximum(jnp.sum(weight), 1.0)
+        return jnp.linalg.solve(AtA, A.T @ (values * weight).T)
 
     def one(la, e, R):
         x = R.T @ (points - t[:, None])  # (3, N) model frame
         z = x[2] / jnp.exp(la[2])
         # the untapered profile: the cross-section's scale at height z, (1 - |z|^(2/e1))^(e1/2)
-        u = jnp.clip(jnp.abs(z), 0.0, 1.0)
-        g = jnp.maximum(1.0 - u ** (2.0 / e[0]), 0.0) ** (0.5 * e[0])
-        slope = regress(g * g, z, jnp.stack([x[0] * x[0], x[1] * x[1], x[0] * x[1]]))[1]
+        profile = lambda z: jnp.maximum(1.0 - jnp.clip(jnp.abs(z), 0.0, 1.0) ** (2.0 / e[0]), 0.0) ** (0.5 * e[0])
+        g = profile(z)
+        slope = regress(g * g, z, jnp.stack([x[0] * x[0], x[1] * x[1], x[0] * x[1]]), w)[1]
         phi = 0.5 * jnp.arctan2(2.0 * slope[2], slope[0] - slope[1])  # the slope's eigenvectors
         c, s = jnp.cos(phi), jnp.sin(phi)
         turn = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype)
@@ -240,10 +240,7 @@ def taper_starts(state, points, mask):
         reach = jax.ops.segment_max(jnp.where(mask, jnp.abs(lateral), -jnp.inf).T, bins, num_segments=B)  # (B, 2)
         filled = jnp.isfinite(reach[:, 0])
         zb = (jnp.arange(B, dtype=dtype) + 0.5) * (2.0 / B) - 1.0
-        gb = jnp.where(filled, jnp.maximum(1.0 - jnp.abs(zb) ** (2.0 / e[0]), 0.0) ** (0.5 * e[0]), 0.0)
-        A = jnp.stack([gb, gb * zb], 1)
-        AtA = A.T @ A + 1e-6 * jnp.eye(2, dtype=dtype)
-        fit = jnp.linalg.solve(AtA, A.T @ jnp.where(filled[:, None], reach, 0.0))  # (2, 2)
+        fit = regress(profile(zb), zb, jnp.where(filled[:, None], reach, 0.0).T, filled.astype(dtype))  # (2, 2)
         K = fit[1] / jnp.maximum(fit[0], jnp.finfo(dtype).tiny)
         K = jnp.clip(jnp.where(jnp.isfinite(K), K, 0.0), -TAPER_START_LIMIT, TAPER_START_LIMIT)
         # the untapered solution is as wide as the part's widest end: the lateral reach of the points

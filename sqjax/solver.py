@@ -194,12 +194,12 @@ def fit_one(points, mask, theta0, opts):
         def deformed_round(carry, _):
             best, ok, base = carry
             undeformed = unpack(base[: plain.num_params], False)
-            starts = [base[None]] + [
+            bent, tapered = (
                 jax.vmap(lambda *s: pack(*s, deform=True))(*make(undeformed, pn, mask))
                 for make in (bend_starts, taper_starts)
-            ]
-            starts += [starts[1][:1].at[:, BEND.start].multiply(f) for f in BEND_BRACKET]
-            starts = jax.lax.stop_gradient(jnp.concatenate(starts))
+            )
+            bracket = [bent[:1].at[:, BEND.start].multiply(f) for f in BEND_BRACKET]
+            starts = jax.lax.stop_gradient(jnp.concatenate([base[None], bent, tapered, *bracket]))
             nested = adjoint.apply(_solve, _stationarity, (pn, mask, starts, opts), frozenset())
             # the cheaper of the two deformed fits, of those off their bounds (`_off_bounds`)
             better = _off_bounds(nested[0]) & (~ok | (nested[1][0] < best[1][0]))

@@ -400,6 +400,27 @@ def test_bend_starts_read_the_bend_from_the_centre_line(alpha):
     np.testing.assert_allclose(np.asarray(R[0]), np.eye(3))
 
 
+def _deformed_views(kind: str, count: int, seed: int):
+    """`count` one-view problems (200 points, 1% noise, random pose and viewpoint) of tapered (|Kx|, |Ky|
+    in 0.3-0.7, either sign) or bent (k a3 in 0.3-0.8) truths elongated along z, drawn as `benchmarks/fit.py
+    --suites deform` draws them: the batched truths and the points (count, 200, 3)."""
+    from sqjax.mesh import sample_surface
+
+    rng = np.random.default_rng(seed)
+    truths, pts = [], []
+    for i in range(count):
+        size = np.concatenate([rng.uniform(0.5, 1.0, 2), rng.uniform(1.5, 2.0, 1)])
+        eps, R = rng.uniform(0.3, 1.2, 2), random_rotation(rng)
+        taper = rng.uniform(0.3, 0.7, 2) * rng.choice([-1, 1], 2) if kind == "tapered" else np.zeros(2)
+        bend = (rng.uniform(0.3, 0.8) / size[2], rng.uniform(-np.pi, np.pi)) if kind == "bent" else (0.0, 0.0)
+        sq = Superquadric.create(size, eps, rotation=R, taper=taper, bend=bend)
+        view = rng.normal(size=3)
+        view = 10 * view / np.linalg.norm(view)
+        truths.append(sq)
+        pts.append(sample_surface(sq, 200, seed=i, noise=0.01 * size.mean(), viewpoint=view))
+    return jax.tree.map(lambda *v: jnp.stack(v), *truths), np.stack(pts)
+
+
 @pytest.mark.slow
 def test_bent_truths_are_recovered_in_any_bending_plane():
     """https://github.com/sqjax/sqjax/issues/14: one-view points (200, 1% noise) of bent truths drawn as
@@ -407,22 +428,9 @@ def test_bent_truths_are_recovered_in_any_bending_plane():
     and their curvature k a3 within 20%. Two problems of that draw (seed 1, the 4th and the 15th) whose
     fits reached only 0.48 and 0.89 from the unbent optimum and the multistart: at k = 0 the cost does
     not depend on the bending plane, and LM found no bend out of alpha = 0 (`initial.bend_starts`)."""
-    from sqjax.mesh import sample_surface
-
-    rng = np.random.default_rng(1)
-    truths, pts = [], []
-    for i in range(16):
-        size = np.concatenate([rng.uniform(0.5, 1.0, 2), rng.uniform(1.5, 2.0, 1)])
-        eps, R = rng.uniform(0.3, 1.2, 2), random_rotation(rng)
-        bend = (rng.uniform(0.3, 0.8) / size[2], rng.uniform(-np.pi, np.pi))
-        sq = Superquadric.create(size, eps, rotation=R, bend=bend)
-        view = rng.normal(size=3)
-        view = 10 * view / np.linalg.norm(view)
-        if i in (3, 14):
-            truths.append(sq)
-            pts.append(sample_surface(sq, 200, seed=i, noise=0.01 * size.mean(), viewpoint=view))
-    out = fit(np.stack(pts), deform=True)
-    stacked = jax.tree.map(lambda *v: jnp.stack(v), *truths)
+    truths, pts = _deformed_views("bent", 15, seed=1)
+    stacked = jax.tree.map(lambda v: v[np.array([3, 14])], truths)
+    out = fit(pts[[3, 14]], deform=True)
     iou = np.asarray(volume_iou_batch(stacked, out.superquadric, n=20_000))
     assert np.all(iou >= 0.95), iou
     ka = np.asarray(out.superquadric.bend[:, 0] * out.superquadric.size[:, 2])
@@ -452,27 +460,6 @@ def test_taper_starts_read_the_taper_in_a_turned_frame(turn):
     assert sorted(along) == [0, 1] and np.all(np.abs(lateral).max(0) > np.cos(0.1)), lateral
     np.testing.assert_allclose(np.asarray(d[0, :2]), taper[along], atol=0.1)
     np.testing.assert_allclose(np.exp(np.asarray(la[0, :2])), size[along], rtol=0.15)
-
-
-def _deformed_views(kind: str, count: int, seed: int):
-    """`count` one-view problems (200 points, 1% noise, random pose and viewpoint) of tapered (|Kx|, |Ky|
-    in 0.3-0.7, either sign) or bent (k a3 in 0.3-0.8) truths elongated along z, drawn as `benchmarks/fit.py
-    --suites deform` draws them: the batched truths and the points (count, 200, 3)."""
-    from sqjax.mesh import sample_surface
-
-    rng = np.random.default_rng(seed)
-    truths, pts = [], []
-    for i in range(count):
-        size = np.concatenate([rng.uniform(0.5, 1.0, 2), rng.uniform(1.5, 2.0, 1)])
-        eps, R = rng.uniform(0.3, 1.2, 2), random_rotation(rng)
-        taper = rng.uniform(0.3, 0.7, 2) * rng.choice([-1, 1], 2) if kind == "tapered" else np.zeros(2)
-        bend = (rng.uniform(0.3, 0.8) / size[2], rng.uniform(-np.pi, np.pi)) if kind == "bent" else (0.0, 0.0)
-        sq = Superquadric.create(size, eps, rotation=R, taper=taper, bend=bend)
-        view = rng.normal(size=3)
-        view = 10 * view / np.linalg.norm(view)
-        truths.append(sq)
-        pts.append(sample_surface(sq, 200, seed=i, noise=0.01 * size.mean(), viewpoint=view))
-    return jax.tree.map(lambda *v: jnp.stack(v), *truths), np.stack(pts)
 
 
 @pytest.mark.slow
