@@ -131,6 +131,13 @@ def _parse(argv):
         help="the clean suite's starting exponents, e1 = e2 each (FitOptions.epsilon_starts; default 1 1.6)",
     )
     ap.add_argument(
+        "--screen-points",
+        type=int,
+        default=None,
+        help="the clean suite's FitOptions.screen_points (default: fit()'s), to measure what the screening's "
+        "subsample costs",
+    )
+    ap.add_argument(
         "--cache",
         metavar="DIR",
         help="turn on the persistent compilation cache in DIR "
@@ -437,6 +444,8 @@ def suite_clean(args, results):
     starts = {} if args.starts is None else {"starts": tuple(args.starts)}
     if args.epsilon_starts is not None:
         starts["epsilon_starts"] = tuple((e, e) for e in args.epsilon_starts)
+    if args.screen_points is not None:
+        starts["screen_points"] = args.screen_points
     for robust in (False, True):
         t0 = time.perf_counter()
         out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual, **starts))
@@ -455,6 +464,7 @@ def suite_clean(args, results):
             "seconds_with_compile": seconds,
             "starts": args.starts,  # None: the defaults
             "epsilon_starts": args.epsilon_starts,
+            "screen_points": args.screen_points,
         }
         results["suites"].append(row)
         print(
