@@ -5,6 +5,7 @@
     python benchmarks/fit.py --out benchmarks/out/fit.json
     python benchmarks/fit.py --suites outliers loop slabs deform --quick    # the issue-14 suites
     python benchmarks/fit.py --suites clean --starts moments rim         # what one start family earns
+    python benchmarks/fit.py --suites clean --screen-points 128          # what the screening subsample costs
 
 Measured 2026-12-02 on the shared 2-core development VM, alone, `python benchmarks/fit.py --quick
 --suites outliers slabs --devices 1 --seconds 0.5` (the distance residual, the default), jax 0.10.2,
@@ -441,14 +442,14 @@ def suite_clean(args, results):
         t, p = problems(int(n), 1, seed=20_000 + k)
         truth.append(t[0])
         pts[k, :n] = p[0]
-    starts = {} if args.starts is None else {"starts": tuple(args.starts)}
+    chosen = {} if args.starts is None else {"starts": tuple(args.starts)}  # FitOptions given on the command line
     if args.epsilon_starts is not None:
-        starts["epsilon_starts"] = tuple((e, e) for e in args.epsilon_starts)
+        chosen["epsilon_starts"] = tuple((e, e) for e in args.epsilon_starts)
     if args.screen_points is not None:
-        starts["screen_points"] = args.screen_points
+        chosen["screen_points"] = args.screen_points
     for robust in (False, True):
         t0 = time.perf_counter()
-        out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual, **starts))
+        out = sqjax.fit(pts, options=FitOptions(robust=robust, residual=args.residual, **chosen))
         jax.block_until_ready(out)
         seconds = time.perf_counter() - t0
         sc = iou(truth, out.superquadric)
