@@ -35,8 +35,10 @@ Suites:
 
 Every suite scores parts with at least `MIN_VISIBLE` = 30 visible pixels (smaller ones are left out of
 the score, their pixels ignored). Scores: Hoover et al. (1996) at T = 0.8 and T = 0.5 (correct, over-,
-under-segmented, missed, noise), time per scene after warm-up (compile reported apart, from
-`jax.monitoring`), peak resident memory.
+under-segmented, missed, noise), the parts correct at T = 0.5 but not at 0.8 by why (split: the found
+region lies on the part but covers too little of it; swollen: it covers the part but spills off it;
+`between`), time per scene after warm-up (compile reported apart, from `jax.monitoring`), peak resident
+memory.
 """
 
 from __future__ import annotations
@@ -88,10 +90,12 @@ def visible_truth(labels, min_visible=MIN_VISIBLE):
 
 
 def score(truth, found, ignore, table=None):
-    """Hoover counts at T = 0.8 and 0.5; with `table` (a truth label) also for the objects alone."""
-    out = {}
+    """Hoover counts at T = 0.8 and 0.5; with `table` (a truth label) also for the objects alone; and
+    the parts correct at T = 0.5 but not at 0.8 by why (`between`)."""
+    out, pairs = {}, {}
     for t in (0.8, 0.5):
         s = hoover(truth, found, tolerance=t, ignore=ignore)
+        pairs[t] = s.correct_pairs
         tag = "" if t == 0.8 else "_t05"
         out.update({f"{k}{tag}": getattr(s, k) for k in KEYS})
         out[f"truth_parts{tag}"] = s.n_truth
@@ -99,7 +103,26 @@ def score(truth, found, ignore, table=None):
             table_ok = any(m == table for m, _ in s.correct_pairs)
             out[f"table_correct{tag}"] = int(table_ok)
             out[f"object_correct{tag}"] = s.correct - int(table_ok)
+    out.update(between(truth, found, ignore, pairs[0.5], {m for m, _ in pairs[0.8]}))
     return out
+
+
+def between(truth, found, ignore, pairs, correct):
+    """Of the truth parts correct at T = 0.5 (`pairs`: (truth, found) labels) but not at 0.8 (`correct`:
+    the truth labels correct there), how many are *split* (the found region lies on the part, >= 0.8 of
+    it, but covers less than 0.8 of the part: the rest went to other labels) and how many *swollen* (it
+    covers the part but spills off it); the others fail both ways."""
+    keep = ~np.asarray(ignore, bool)
+    counts = {"split_t05_t08": 0, "swollen_t05_t08": 0, "both_t05_t08": 0}
+    for m, n in pairs:
+        if m in correct:
+            continue
+        T, F = (truth == m) & keep, (found == n) & keep
+        both = np.sum(T & F)
+        cover, purity = both / max(T.sum(), 1), both / max(F.sum(), 1)
+        kind = "split" if purity >= 0.8 else "swollen" if cover >= 0.8 else "both"
+        counts[f"{kind}_t05_t08"] += 1
+    return counts
 
 
 OPTIONS: dict = {}  # -o KEY=VALUE: SegmentOptions for an ablation (the defaults otherwise)
@@ -146,6 +169,7 @@ def summarise(rows):
         "missed_rate": s["missed"] / max(n, 1),
         "noise_rate": s["noise"] / max(f, 1),
         "correct_rate_t05": sum(r["correct_t05"] for r in rows) / max(n, 1),
+        **{k: sum(r.get(k, 0) for r in rows) for k in ("split_t05_t08", "swollen_t05_t08", "both_t05_t08")},
         "run_seconds_median": float(np.median(warm)),
         "run_seconds_max": float(np.max(warm)),
         "first_scene_compile_seconds": rows[0]["compile_seconds"],
@@ -476,6 +500,12 @@ def print_table(results):
                 line(f"clouds/{kind}", results["clouds"][kind])
         parts = results["clouds"]["single_object_parts"]
         print("single-object clouds, parts found: " + ", ".join(f"{k} {v}" for k, v in parts.items()))
+    split = [
+        f"{key} {s['split_t05_t08']}/{s['swollen_t05_t08']}/{s['both_t05_t08']}"
+        for key in ("synthetic", "mosd", "multipart", "meshes", "clouds", "rooms")
+        if key in results and "split_t05_t08" in (s := results[key]["summary"])
+    ]
+    print("correct at T = 0.5, not at 0.8, split/swollen/both: " + ", ".join(split))
     print(f"peak RSS {results['peak_rss_gib']:.2f} GiB")
 
 
