@@ -355,7 +355,9 @@ def fit(
     least 128), so one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
     differentiation at the optimum; the same steps in jax.numpy). When JAX has several CPU devices
     (`parallel`: `jax_num_cpu_devices`) and they divide the padded batch, the
-    problems are split between them (same kernel per problem, so the same results).
+    problems are split between them: the same code per problem, with results equal to rounding (8 problems
+    of 300 points on 1 and 2 devices differ by up to 9e-5 in size and translation; `parallel` says when
+    they are equal bit for bit).
     """
     if options is not None and kw:
         raise TypeError(f"fit: pass either options= or keyword options, not both (got {sorted(kw)})")
