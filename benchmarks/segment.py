@@ -118,8 +118,8 @@ def between(truth, found, ignore, pairs, correct):
         if m in correct:
             continue
         T, F = (truth == m) & keep, (found == n) & keep
-        both = np.sum(T & F)
-        cover, purity = both / max(T.sum(), 1), both / max(F.sum(), 1)
+        overlap = np.sum(T & F)
+        cover, purity = overlap / max(T.sum(), 1), overlap / max(F.sum(), 1)
         kind = "split" if purity >= 0.8 else "swollen" if cover >= 0.8 else "both"
         counts[f"{kind}_t05_t08"] += 1
     return counts
