@@ -111,8 +111,9 @@ def between(truth, found, ignore, pairs, correct):
     """Of the truth parts correct at T = 0.5 (`pairs`: (truth, found) labels) but not at 0.8 (`correct`:
     the truth labels correct there), how many are *split* (the found region lies on the part, >= 0.8 of
     it, but covers less than 0.8 of the part: the rest went to other labels) and how many *swollen* (it
-    covers the part but spills off it); the others fail both ways."""
-    keep = ~np.asarray(ignore, bool)
+    covers the part but spills off it); the others fail both ways. Over the pixels `hoover` scores (truth
+    label > 0, not ignored), so that a region's size is the R_n of its Hoover count."""
+    keep = (truth > 0) & ~np.asarray(ignore, bool)
     counts = {"split_t05_t08": 0, "swollen_t05_t08": 0, "both_t05_t08": 0}
     for m, n in pairs:
         if m in correct:
