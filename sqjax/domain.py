@@ -300,23 +300,22 @@ def _dilate_cloud(bits, neighbours, rings):
 def free_components(free, neighbours, min_size: int, max_size: int | None = None) -> list:
     """Connected sets of `free` points (P,) bool along the adjacency (P, k), as index arrays, for the
     components with `min_size` to `max_size` (None: any) points (min-label propagation with pointer
-    jumping)."""
+    jumping) on the free points alone: a call costs their number, not P's (labelling calls it once per
+    model and label; on all P, a 1.2M-point cloud's 108 parts spent 9 s here)."""
     P = free.shape[0]
-    label = np.where(free, np.arange(P), P)
-    nb = np.where(neighbours >= 0, neighbours, np.arange(P)[:, None])
-    ok = free[:, None] & free[nb]
-    label_ext = np.append(label, P)
+    ids = np.flatnonzero(free)
+    n = ids.size
+    local = np.full(P + 1, n)  # a point's index among the free ones; n: not free, or no neighbour
+    local[ids] = np.arange(n)
+    nb = local[np.where(neighbours[ids] >= 0, neighbours[ids], P)]  # (n, k) free neighbours, else n
+    label = np.arange(n)  # the smallest index in the component, once converged (ascending as in P)
     while True:
-        cand = np.where(ok, label_ext[nb], P).min(1)
-        new = np.minimum(label, cand)
-        new = np.where(free, new, P)
-        new = np.where(free, np.append(new, P)[new], P)  # pointer jumping: labels are indices
+        new = np.minimum(label, np.append(label, n)[nb].min(1)) if n else label
+        new = new[new]  # pointer jumping: labels are indices
         if np.array_equal(new, label):
             break
         label = new
-        label_ext = np.append(label, P)
-    ids = np.flatnonzero(free)
-    order = np.argsort(label[ids], kind="stable")
-    ids, lab = ids[order], label[ids][order]
+    order = np.argsort(label, kind="stable")
+    ids, lab = ids[order], label[order]
     cuts = np.flatnonzero(np.diff(lab)) + 1
-    return [c for c in np.split(ids, cuts) if min_size <= c.size <= (max_size or P)]
+    return [c for c in np.split(ids, cuts) if min_size <= c.size <= (max_size or P)] if n else []

@@ -159,6 +159,32 @@ def test_free_components_follow_the_adjacency():
     assert [c.tolist() for c in free_components(free, nb, 2, 2)] == [[3, 4]]
     free[1] = False  # explained point splits the chain
     assert [c.tolist() for c in free_components(free, nb, 1, 10)] == [[0], [2], [3, 4], [5]]
+    assert free_components(np.zeros(6, bool), nb, 1) == []
+
+
+def test_free_components_are_the_connected_pieces_of_the_free_points():
+    """On a symmetric adjacency (an image grid with cuts), the pieces are the connected components of the
+    graph the free points induce (scipy's), ordered by their first point."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from sqjax.domain import free_components
+
+    rng = np.random.default_rng(3)
+    H, W = 40, 50
+    idx = np.arange(H * W).reshape(H, W)
+    nb = np.full((H * W, 4), -1)
+    nb[idx[:, 1:].ravel(), 0], nb[idx[:, :-1].ravel(), 1] = idx[:, :-1].ravel(), idx[:, 1:].ravel()
+    nb[idx[1:].ravel(), 2], nb[idx[:-1].ravel(), 3] = idx[:-1].ravel(), idx[1:].ravel()
+    for free in (rng.random(H * W) < 0.6, rng.random(H * W) < 0.05):
+        ids = np.flatnonzero(free)
+        p, j = np.nonzero((nb[ids] >= 0) & free[np.maximum(nb[ids], 0)])
+        local = np.searchsorted(ids, nb[ids][p, j])
+        graph = coo_matrix((np.ones(p.size), (p, local)), shape=(ids.size, ids.size))
+        _, comp = connected_components(graph, directed=False)
+        expected = sorted((ids[comp == c] for c in np.unique(comp)), key=lambda c: c[0])
+        got = free_components(free, nb, 1)
+        assert [c.tolist() for c in got] == [c.tolist() for c in expected]
 
 
 def test_reseeding_finds_a_part_whose_hypotheses_lost_early():
