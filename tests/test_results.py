@@ -228,6 +228,32 @@ def test_cloud_figure_panels_keep_to_the_data_when_a_model_is_swollen():
         assert np.ptp(ax.get_xlim()) < 4.0, ax.get_xlim()
 
 
+def test_cloud_figure_matches_model_colours_on_a_bounded_sample(monkeypatch):
+    """The colours of a cloud's earlier models come from their overlap with the final parts, counted on
+    at most `MATCH_POINTS` points: a million-point cloud's figure took 15 s testing every model on every
+    point. Each model still takes the colour of the part it lies on."""
+    import sqjax.plot as plot
+    import sqjax.superquadric as sqmod
+
+    monkeypatch.setattr(plot, "MATCH_POINTS", 500)
+    sizes = []
+    contains = sqmod.contains
+
+    def counting(sq, points):
+        sizes.append(len(points))
+        return contains(sq, points)
+
+    monkeypatch.setattr(sqmod, "contains", counting)
+    rng = np.random.default_rng(0)
+    left, right = rng.uniform(-1, 1, (3000, 3)) + (-5, 0, 0), rng.uniform(-1, 1, (3000, 3)) + (5, 0, 0)
+    pts = np.concatenate([left, right])
+    final = np.repeat(np.array([1, 2], np.int32), 3000)
+    models = [Superquadric.create([1.0, 1.0, 1.0], translation=[x, 0, 0]) for x in (5.0, -5.0)]
+    idx = plot._match_cloud(models, pts, final, 2)
+    assert sizes and max(sizes) <= 500
+    assert idx.tolist() == [1, 0]  # the parts they lie on: the right one (colour 1), the left one (colour 0)
+
+
 @pytest.mark.parametrize("shape", [(1, 16), (12, 1)])
 def test_model_images_of_a_one_pixel_wide_image_are_shaded(shape):
     """A range image one pixel high or wide (a scan line) segments; its figure's model panel shades
