@@ -9,7 +9,9 @@ as on a new machine. Inputs: every file of a supported extension under `--data` 
 clouds, meshes; `.png` only where the folder holds a camera file), with the folder's
 `camera_params.json` or `intrinsics.json` as `--intrinsics` for depth files that store no camera, and
 the first `--mosd` scenes of each mOSD split at full size (640 x 480). A file the command refuses is
-reported with the one line it printed, and the next one runs.
+reported with the one line it printed, and the next one runs. `--large P` also runs a cloud of P
+points as a user's own export of a dense scan would come: Bobkov's room1 (238k points) repeated with
+3 mm of Gaussian jitter per copy, written as `.xyz` text (`--large-only`: that cloud alone).
 
 Per call: the exit status, the wall time of the process (start-up, reading, segmentation, writing the
 outputs and the figure), `segment()`'s own time and the JAX compile events in it (the CLI's report
@@ -59,6 +61,26 @@ def inputs(data: Path, mosd: int) -> list[tuple[str, list[str]]]:
     return out
 
 
+LARGE_SOURCE = "bobkov_indoor_parts/room1_gt_fine.pcd"
+"""The scan `--large` repeats (jittered) to the asked number of points."""
+
+
+def large_cloud(data: Path, points: int, folder: Path) -> Path:
+    """`points` points of `LARGE_SOURCE` repeated, each copy jittered by 3 mm (seeded), as .xyz text."""
+    import numpy as np
+
+    from sqjax import read_points
+
+    src = read_points(data / LARGE_SOURCE)
+    src = src[np.isfinite(src).all(1)]
+    rng = np.random.default_rng(0)
+    copies = -(-points // len(src))
+    cloud = np.concatenate([src + rng.normal(scale=0.003, size=src.shape) for _ in range(copies)])[:points]
+    path = folder / f"room1_x{copies}_{points}.xyz"
+    np.savetxt(path, cloud, fmt="%.5f")
+    return path
+
+
 def run(argv: list[str], out: Path, env: dict) -> dict:
     """One `sqjax segment` process: its exit status, wall s, peak RSS (GiB) and what it reported."""
     out.mkdir(parents=True, exist_ok=True)
@@ -90,6 +112,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--mosd", type=int, default=3, help="full-size mOSD scenes per split")
     ap.add_argument("--out", default="benchmarks/out/files.json")
+    ap.add_argument("--large", type=int, default=0, help="also a cloud of this many points (room1 repeated)")
+    ap.add_argument("--large-only", action="store_true", help="only the --large cloud")
     a = ap.parse_args(argv)
     data = Path(a.data)
     if not data.is_dir():
@@ -98,7 +122,11 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, SQJAX_CACHE_DIR=str(Path(tmp) / "cache"), PYTHONPATH=str(ROOT))
         env.pop("SQJAX_NO_CACHE", None)
-        for i, (name, args) in enumerate(inputs(data, a.mosd)):
+        todo = [] if a.large_only else inputs(data, a.mosd)
+        if a.large > 0:
+            path = large_cloud(data, a.large, Path(tmp))
+            todo.append((f"{path.name} ({a.large} points, {path.stat().st_size / 2**20:.0f} MiB)", [str(path)]))
+        for i, (name, args) in enumerate(todo):
             row = {"file": name, "args": args[1:], **run(args, Path(tmp) / f"out{i}", env)}
             rows.append(row)
             rss = f"{row['peak_rss_gib']:.2f}"
