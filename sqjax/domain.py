@@ -286,15 +286,15 @@ def knn(P, k, queries=None):
 
 def _dilate_cloud(bits, neighbours, rings):
     """Regions packed over their first axis (B, P) uint8 grown by `rings` steps along the adjacency
-    (P, k)."""
-    cols = [(np.where(nb >= 0, nb, 0), (nb >= 0) * np.uint8(255)) for nb in neighbours.T]
-    out = bits
+    (P, k). Point-major inside: a neighbour's B bytes are one row to gather, not B scattered ones."""
+    cols = [(np.where(nb >= 0, nb, 0), ((nb >= 0) * np.uint8(255))[:, None]) for nb in neighbours.T]
+    out = np.ascontiguousarray(bits.T)
     for _ in range(rings):
         step = out.copy()
         for nb, ok in cols:
-            step |= out[:, nb] & ok
+            step |= out[nb] & ok
         out = step
-    return out
+    return np.ascontiguousarray(out.T)
 
 
 def free_components(free, neighbours, min_size: int, max_size: int | None = None) -> list:
