@@ -355,7 +355,7 @@ def _match_cloud(models, pts, final_labels, n_final):
     sqs = _superquadrics(models)
     if not sqs:
         return np.zeros(0, np.int64)
-    stride = -(-len(pts) // MATCH_POINTS)
+    stride = max(1, -(-len(pts) // MATCH_POINTS))
     pts, final_labels = pts[::stride], np.asarray(final_labels)[::stride]
     on_device = jnp.asarray(pts, sqs[0].size.dtype)  # once for every model
 
