@@ -310,7 +310,7 @@ def free_components(free, neighbours, min_size: int, max_size: int | None = None
     nb = local[np.where(neighbours[ids] >= 0, neighbours[ids], P)]  # (n, k) free neighbours, else n
     label = np.arange(n)  # the smallest index in the component, once converged (ascending as in P)
     while True:
-        new = np.minimum(label, np.append(label, n)[nb].min(1)) if n else label
+        new = np.minimum(label, np.append(label, n)[nb].min(1, initial=n)) if n else label
         new = new[new]  # pointer jumping: labels are indices
         if np.array_equal(new, label):
             break

@@ -160,6 +160,7 @@ def test_free_components_follow_the_adjacency():
     free[1] = False  # explained point splits the chain
     assert [c.tolist() for c in free_components(free, nb, 1, 10)] == [[0], [2], [3, 4], [5]]
     assert free_components(np.zeros(6, bool), nb, 1) == []
+    assert [c.tolist() for c in free_components(free, np.zeros((6, 0), int), 1)] == [[0], [2], [3], [4], [5]]
 
 
 def test_cloud_regions_dilate_along_the_neighbour_lists():
