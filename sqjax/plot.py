@@ -361,6 +361,8 @@ def _match_cloud(models, pts, final_labels, n_final):
 
     lab = np.zeros(len(pts), np.int32)
     best = np.full(len(pts), np.inf)
+    # one call per model: one vmapped call over all of them (padded to a power of two) took 0.6 s
+    # instead of 0.3 s for 305 models on 20,000 points, the same colours (2026-12-06)
     for i, sq in enumerate(sqs):  # points inside a 10 % enlarged model count as its pixels
         big = type(sq)(sq.size * 1.1, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend)
         inside = np.asarray(contains(big, on_device))
