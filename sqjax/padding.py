@@ -25,6 +25,28 @@ one device with any number): a union fit of the merge between small parts, or `f
 with `use_cpu_cores(2)`. 14 problems of 18 (252): fits/s unchanged within the machine's drift (1
 device, 2026-12-04: N = 128 310 vs 330, N = 256 176-189 vs 182 before)."""
 
+
+def fit_chunk(K: int, N: int, candidates: int, screened: int) -> int:
+    """Problems `fit`'s batch kernel fits side by side on CPU (`solver.map_problems`): K problems of N
+    points, `candidates` starts each side by side on `screened` of the points (the multistart; 1 and N
+    for a warm start).
+
+    Segmentation's kernels fit `min(CHUNK_POINTS // N, MULTISTART_CANDIDATES // candidates)` at a time
+    (their labels stay those of that chunking, see `parallel`). `fit`'s rounds that down to a power of
+    two, so that it divides the padded K: a remainder is a second copy of the whole fit in the program
+    (64 problems of 256 points compiled in 13-14 s instead of 6-7 s). On one CPU device it sizes the
+    multistart by its screened points, which are most of its work, not by N: XLA then spreads each
+    chunk's operations over the cores, and N = 1024 and 4096 (4 and 1 problems at a time before, 8
+    now) ran 1.2-1.3x faster (K = 64, 2026-12-06, RESULTS.md). Split over one device per core (the
+    command line, the benchmarks), wider chunks gained nothing (0.90-0.97x, within the drift), so N
+    sizes them there as before."""
+    points = screened if parallel.cpu_devices() == 1 else N
+    limit = max(1, CHUNK_POINTS // max(points, 1))
+    if candidates > 1:
+        limit = min(limit, max(1, MULTISTART_CANDIDATES // candidates))
+    return 1 << (min(limit, max(K, 1)).bit_length() - 1)
+
+
 ACCELERATOR_BATCHES = (1, 4, 16, 32, 64)
 """Problems per call of the fit kernel on an accelerator, for callers whose count moves (`fit_call_sizes`)."""
 

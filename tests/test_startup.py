@@ -115,9 +115,9 @@ def _traces(monkeypatch):
     count = [0]
     real = solver.map_problems
 
-    def counted(*a):
+    def counted(*a, **k):
         count[0] += 1
-        return real(*a)
+        return real(*a, **k)
 
     monkeypatch.setattr(solver, "map_problems", counted)
     return count

@@ -65,6 +65,26 @@ def test_kernel_traces_once_per_bucket(monkeypatch):
     assert eqx.debug.get_num_traces(counted) == 1
 
 
+def test_fit_chunks_divide_the_padded_batch(monkeypatch):
+    """`fit`'s kernel fits a power of two of problems at a time (`padding.fit_chunk`): it divides every
+    padded K, so the program holds one copy of the fit (a remainder would be a second); within the
+    points and candidates a chunk may hold; by the screened points on one device, by N on several."""
+    from sqjax import padding, parallel
+
+    for devices in (1, 2):
+        monkeypatch.setattr(parallel, "cpu_devices", lambda d=devices: d)
+        for K in (1, 2, 8, 32, 64, 256):
+            for N in (32, 128, 256, 1024, 4096, 8192):
+                for candidates, screened in ((1, N), (18, min(N, 256))):
+                    c = padding.fit_chunk(K, N, candidates, screened)
+                    sized = screened if devices == 1 else N
+                    assert c >= 1 and c & (c - 1) == 0 and K % c == 0, (K, N, c)
+                    assert c == 1 or c * sized <= padding.CHUNK_POINTS, (K, N, c)
+                    assert c == 1 or c * candidates <= padding.MULTISTART_CANDIDATES, (K, N, c)
+                    widest = min(K, padding.CHUNK_POINTS // sized, padding.MULTISTART_CANDIDATES // candidates)
+                    assert 2 * c > widest, (K, N, c)
+
+
 _TWO_DEVICES = textwrap.dedent("""
     import jax, numpy as np, jax.numpy as jnp
     import sqjax.fitting as fitting
