@@ -13,7 +13,7 @@ import numpy as np
 from . import parallel
 
 CHUNK_POINTS = 4096
-"""On CPU the fitter fits `max(1, CHUNK_POINTS // N)` problems of N points at a time (`solver.map_problems`):
+"""On CPU the fitter fits at most `CHUNK_POINTS // N` problems of N points at a time (`fit_chunk`):
 a chunk's points and every intermediate of its LM steps then stay in cache."""
 
 MULTISTART_CANDIDATES = 256
@@ -27,19 +27,18 @@ device, 2026-12-04: N = 128 310 vs 330, N = 256 176-189 vs 182 before)."""
 
 
 def fit_chunk(K: int, N: int, candidates: int, screened: int) -> int:
-    """Problems `fit`'s batch kernel fits side by side on CPU (`solver.map_problems`): K problems of N
-    points, `candidates` starts each side by side on `screened` of the points (the multistart; 1 and N
-    for a warm start).
+    """Problems the fit kernels fit side by side on CPU (`solver.map_problems`): K problems of N points,
+    `candidates` starts each side by side on `screened` of the points (the multistart; 1 and N for a
+    warm start).
 
-    Segmentation's kernels fit `min(CHUNK_POINTS // N, MULTISTART_CANDIDATES // candidates)` at a time
-    (their labels stay those of that chunking, see `parallel`). `fit`'s rounds that down to a power of
-    two, so that it divides the padded K: a remainder is a second copy of the whole fit in the program
-    (64 problems of 256 points compiled in 13-14 s instead of 6-7 s). On one CPU device it sizes the
-    multistart by its screened points, which are most of its work, not by N: XLA then spreads each
-    chunk's operations over the cores, and N = 1024 and 4096 (4 and 1 problems at a time before, 8
-    now) ran 1.2-1.3x faster (K = 64, 2026-12-06, RESULTS.md). Split over one device per core (the
-    command line, the benchmarks), wider chunks gained nothing (0.90-0.97x, within the drift), so N
-    sizes them there as before."""
+    At most `CHUNK_POINTS // points` and, with several starts, `MULTISTART_CANDIDATES // candidates`,
+    rounded down to a power of two, so that it divides the padded K: a remainder is a second copy of the
+    whole fit in the program (14 problems of a 64-problem call compiled in 12-15 s instead of 7 s; the
+    merges' multistart in segmentation likewise). `points` is the screened points on one CPU device, N
+    on several. The screening is most of a multistart's work, and on one device XLA spreads a wider
+    chunk's operations over the cores: N = 1024 and 4096 (4 and 1 problems at a time when sized by N,
+    8 now) ran 1.2-1.3x faster (K = 64, 2026-12-06, RESULTS.md). Split over one device per core (the
+    command line, the benchmarks), wider chunks gained nothing (0.90-0.97x, within the drift)."""
     points = screened if parallel.cpu_devices() == 1 else N
     limit = max(1, CHUNK_POINTS // max(points, 1))
     if candidates > 1:

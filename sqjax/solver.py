@@ -36,7 +36,7 @@ from .chart import (
 from .deformation import max_curvature
 from .initial import bend_starts, initial_states, moment_starts, switched, taper_starts
 from .lm import capped, cost_of, levenberg_marquardt
-from .padding import CHUNK_POINTS, MULTISTART_CANDIDATES, fit_chunk
+from .padding import fit_chunk
 from .parallel import shard
 from .robust import reweighted, robust_scores
 from .superquadric import distance
@@ -219,27 +219,20 @@ def fit_one(points, mask, theta0, opts):
     return theta, cost, conv, dist, weight
 
 
-def map_problems(points, mask, theta0, opts, fit_chunks: bool = False):
-    """`fit_one` over the leading axis: one vmap on accelerators; on CPU a loop over small chunks.
+def map_problems(points, mask, theta0, opts):
+    """`fit_one` over the leading axis: one vmap on accelerators; on CPU a loop over small chunks
+    (`padding.fit_chunk`).
 
     A chunk's points and every intermediate of its LM steps then stay in cache, which on CPU is worth
-    more than the width of one huge vmap. `fit_chunks`: `fit`'s chunks (`padding.fit_chunk`), else
-    segmentation's.
+    more than the width of one huge vmap.
     """
     K, N = points.shape[:2]
     if jax.default_backend() != "cpu":
         return jax.vmap(fit_one, in_axes=(0, 0, None if theta0 is None else 0, None))(points, mask, theta0, opts)
     multistart = theta0 is None and opts.multistart  # its candidates run side by side on the screened points
-    if fit_chunks:
-        # the deformed rounds run on every point, and so does a warm start
-        sub = opts.screen_points
-        screened = N if sub is None or not multistart or opts.deform else min(N, sub)
-        chunk = fit_chunk(K, N, opts.num_candidates if multistart else 1, screened)
-    else:
-        chunk = max(1, CHUNK_POINTS // N)
-        if multistart:
-            chunk = min(chunk, max(1, MULTISTART_CANDIDATES // opts.num_candidates))
-        chunk = min(K, chunk)
+    sub = opts.screen_points  # the deformed rounds run on every point, and so does a warm start
+    screened = N if sub is None or not multistart or opts.deform else min(N, sub)
+    chunk = fit_chunk(K, N, opts.num_candidates if multistart else 1, screened)
     return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts), (points, mask, theta0), batch_size=chunk)
 
 
@@ -260,7 +253,7 @@ def fit_problems(points, mask, init, opts):
     theta0, init_ok = (
         (None, jnp.ones(points.shape[:1], bool)) if init is None else from_fields(init, opts.epsilon_range, opts.deform)
     )
-    theta, cost, conv, dist, weight = map_problems(points, mask, theta0, opts, fit_chunks=True)
+    theta, cost, conv, dist, weight = map_problems(points, mask, theta0, opts)
     sq = to_superquadric(theta, opts.deform)
     return (sq.size, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend), cost, conv, dist, weight, init_ok
 
