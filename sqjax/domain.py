@@ -273,7 +273,7 @@ def knn(P, k, queries=None):
     own = queries is None
     Q = P if own else queries
     k_eff = min(k + own, P.shape[0])
-    _, idx = cKDTree(P).query(Q, k_eff)
+    _, idx = cKDTree(P).query(Q, k_eff, workers=-1)  # every core; the same neighbours
     idx = np.asarray(idx, np.int64).reshape(Q.shape[0], k_eff)
     if own:  # drop the query itself (or, if duplicates pushed it out, the farthest)
         is_self = idx == np.arange(Q.shape[0])[:, None]

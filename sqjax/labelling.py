@@ -191,7 +191,7 @@ def label_cloud(cloud: np.ndarray, ws: Workspace, models: Models, coarse: np.nda
     dom = Domain(P, np.zeros((P.shape[0], 0), np.int64), rows, (len(cloud),))
     full = Workspace.create(dom, ws.opts, ws.noise, ws.dtype, centre=ws.centre)
     k = min(_CLOUD_CANDIDATES, ws.P)
-    _, near = cKDTree(ws.dom.points).query(P, k)
+    _, near = cKDTree(ws.dom.points).query(P, k, workers=-1)
     near = near.reshape(P.shape[0], k)
     cand = coarse[ws.dom.index[near]]  # (Pf, k) labels of the nearest working points
     carried = _carried(ws, models, coarse[ws.dom.index])
