@@ -26,6 +26,11 @@ Suites:
   seven multi-part object kinds sampled all round (`closed_cloud`: the whole surface, as a registered
   scan or a mesh's samples give it, not one view) at two densities, scored per part and reported apart
   from the views (the clouds figure stays comparable with earlier runs).
+- `sizes`: the multi-part objects (the first 21 scenes) and the meshes rendered at `SIZES` (320 x 240
+  and 640 x 480; the same objects and views, more pixels), through `segment`'s default path (a
+  working resolution, `segmentation.working_step`, then every input pixel labelled), scored at the
+  input's size and reported per suite and size (a part needs `MIN_VISIBLE` pixels at that size, so
+  more parts count than at 160 x 120).
 - `rooms`: Bobkov's office rooms (../shared/data/bobkov_indoor_parts: registered laser scans of real
   chairs and tables, 124k and 238k points, hand-labelled parts), segmented as bare clouds and scored
   on the labelled points against the fine (part) labels, points labelled 0 (walls, floor, clutter)
@@ -74,6 +79,8 @@ MESHES = (
     "trimesh_models/box.STL",
     "trimesh_models/multibody.stl",
 )
+SIZES = ((240, 320), (480, 640))
+"""Render sizes of the `sizes` suite (rows, columns)."""
 KEYS = ("correct", "over", "under", "missed", "noise")
 
 
@@ -141,6 +148,7 @@ def run_scene(image, truth, *, table=None, truth_sq=None, figure=None, found=Non
         "seconds": seg.timings["total"],
         "compile_seconds": seg.timings["compile"],
         "run_seconds": seg.timings["run"],
+        "subsample": int(seg.stats["subsample"]),
     }
     if truth_sq is not None:
         s = hoover(truth, seg.labels, tolerance=0.8, ignore=ignore)
@@ -181,7 +189,7 @@ def summarise(rows):
         out["object_rate"] = sum(r["object_correct"] for r in rows) / max(objects, 1)
         out["object_rate_t05"] = sum(r["object_correct_t05"] for r in rows) / max(objects, 1)
     if "iou" in rows[0]:
-        ious = [v for r in rows for v in r["iou"]]
+        ious = [v for r in rows for v in r.get("iou", [])]
         out["iou_median"] = float(np.median(ious)) if ious else float("nan")
     return out
 
@@ -266,9 +274,9 @@ def closed_cloud(s, spacing, noise=0.005):
     return np.concatenate(points), np.concatenate(truth)
 
 
-def multipart(s):
+def multipart(s, shape=(120, 160)):
     """Multi-part scene s: (range image, its true superquadrics, its labels)."""
-    image, parts = multipart_scene(s, OBJECTS[s % len(OBJECTS)])
+    image, parts = multipart_scene(s, OBJECTS[s % len(OBJECTS)], shape=shape)
     return image, parts, image.labels
 
 
@@ -335,7 +343,7 @@ def mesh_scene(path, view, shape=(120, 160), noise=0.005):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--suites", default="synthetic,mosd,multipart,meshes,clouds,rooms")
+    ap.add_argument("--suites", default="synthetic,mosd,multipart,meshes,sizes,clouds,rooms")
     ap.add_argument("--scenes", type=int, default=50, help="synthetic scenes")
     ap.add_argument("--multipart", type=int, default=42, help="multi-part object scenes")
     ap.add_argument("--mosd-step", type=int, default=4)
@@ -416,6 +424,30 @@ def main(argv=None):
         scenes["meshes"] = [
             (f"{p.stem}:{v}", lambda p=p, v=v: mesh(p, v)) for p in found for v in range(1 if args.quick else 3)
         ]
+    if "sizes" in suites:
+        found = [DATA / m for m in MESHES if (DATA / m).exists()]
+
+        def sized(shape, s=None, p=None, v=None):
+            if p is None:
+                image, parts, truth = multipart(s, shape)
+                return image, truth, {"truth_sq": parts}
+            image = mesh_scene(p, v, shape)
+            return image, image.labels, {}
+
+        n_sized = 7 if args.quick else min(n_mp, 21)
+        scenes["sizes"] = [
+            item
+            for shape in SIZES
+            for item in [
+                (f"multipart@{shape[1]}x{shape[0]}:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda sh=shape, s=s: sized(sh, s))
+                for s in range(n_sized)
+            ]
+            + [
+                (f"meshes@{shape[1]}x{shape[0]}:{p.stem}:{v}", lambda sh=shape, p=p, v=v: sized(sh, p=p, v=v))
+                for p in found
+                for v in range(1 if args.quick else 3)
+            ]
+        ]
     if "clouds" in suites:
         scenes["clouds"] = cloud_scenes(mosd_files[:: 6 if args.quick else 3], args.mosd_step, (n_mp + 1) // 2)
     if "rooms" in suites:
@@ -451,12 +483,18 @@ def main(argv=None):
             kinds = {k: [r for r in rows if r["scene"].startswith(k + ":")] for k in prefixes}
             results[suite].update({k: summarise(kinds[k]) for k in ("mosd", "multipart", "closed") if kinds[k]})
             results[suite]["single_object_parts"] = {r["scene"][7:]: r["found_parts"] for r in kinds["single"]}
+        if suite == "sizes":  # per suite and size, not pooled
+            group = lambda r: r["scene"].split(":")[0]
+            results[suite]["groups"] = {
+                g: summarise([r for r in rows if group(r) == g]) for g in sorted({group(r) for r in rows})
+            }
+            results[suite]["steps"] = {r["scene"]: r["subsample"] for r in rows}
         if suite == "mosd":
             results[suite]["step"] = args.mosd_step
             results[suite]["categories"] = {
                 c: summarise([r for r in rows if r["category"] == c]) for c in sorted({r["category"] for r in rows})
             }
-        if args.figures and suite not in ("clouds", "rooms"):
+        if args.figures and suite not in ("clouds", "rooms", "sizes"):
             worst = sorted(rows, key=lambda r: (r["correct"] - r["truth_parts"], r["scene"]))[: args.worst]
             for r in worst:
                 image, truth, _ = dict(items)[r["scene"]]()
@@ -494,6 +532,8 @@ def print_table(results):
                 line(f"  mosd/{c}", s)
             if "density" in results[key]:
                 line(f"{key}/density", results[key]["density"])
+    for g, s in results.get("sizes", {}).get("groups", {}).items():
+        line(g, s)
     if "clouds" in results:
         line("clouds", results["clouds"]["summary"])
         for kind in ("mosd", "multipart", "closed"):
@@ -503,7 +543,7 @@ def print_table(results):
         print("single-object clouds, parts found: " + ", ".join(f"{k} {v}" for k, v in parts.items()))
     split = [
         f"{key} {s['split_t05_t08']}/{s['swollen_t05_t08']}/{s['both_t05_t08']}"
-        for key in ("synthetic", "mosd", "multipart", "meshes", "clouds", "rooms")
+        for key in ("synthetic", "mosd", "multipart", "meshes", "sizes", "clouds", "rooms")
         if key in results and "split_t05_t08" in (s := results[key]["summary"])
     ]
     print("correct at T = 0.5, not at 0.8, split/swollen/both: " + ", ".join(split))
