@@ -297,8 +297,11 @@ class ExtraOptions:
       85.7% (rims of slightly large models). False = the paper's eq. 10 distance alone.
     - `subsample`: range images are segmented at every `subsample`-th row and column, then every pixel
       of the input is labelled by the final models (the paper subsampled its dense images). None =
-      the step that brings the image nearest to `segmentation.WORKING_PIXELS` (160 x 120, the
-      resolution every default here was measured at: 640 x 480 -> 4); 1 = the slow exact path.
+      `segmentation.working_step`: the step that brings the image nearest to
+      `segmentation.WORKING_PIXELS` (160 x 120, the resolution every default here was measured at:
+      640 x 480 -> 4), or a finer one while the working image keeps at most
+      `segmentation.WORKING_VALID` valid pixels (an object that fills a fifth of a 320 x 240 render:
+      step 1); 1 = the slow exact path.
       Point clouds likewise: segmented on one in `subsample` of their points (a fixed random choice,
       `segmentation.working_subset`), every input point then labelled; None = nearest to
       `segmentation.WORKING_POINTS` (76,800: four working images' worth, measured on Bobkov's rooms).

@@ -29,6 +29,10 @@ from .workspace import Noise, Workspace
 
 WORKING_PIXELS = 160 * 120
 """Range images are segmented at about this many pixels (`ExtraOptions.subsample`)."""
+WORKING_VALID = 13_100
+"""A range image is segmented at a finer step than its frame's (`working_step`) while its working image
+keeps at most this many valid pixels: the most that the 59 mOSD frames hold at 160 x 120 (10,000 to
+13,100), on which the time per scene was measured (benchmarks/segment.py, median about 2 s)."""
 WORKING_POINTS = 4 * WORKING_PIXELS
 """Point clouds are segmented on about this many of their points (`ExtraOptions.subsample`).
 
@@ -94,9 +98,23 @@ def noise_free(points, noise: float) -> bool:
     return extent > 0.0 and noise < NOISE_FREE * extent
 
 
-def working_step(shape) -> int:
-    """The subsampling step that brings an (H, W) image nearest to `WORKING_PIXELS` (>= 1)."""
-    return max(1, int(round(np.sqrt(shape[0] * shape[1] / WORKING_PIXELS))))
+def working_step(shape, valid: np.ndarray | None = None) -> int:
+    """The subsampling step of an (H, W) image (>= 1): the step that brings the frame nearest to
+    `WORKING_PIXELS`, or a smaller one while the working image's valid pixels (`valid` (H, W) bool;
+    None = all) stay within `WORKING_VALID`.
+
+    Segmentation's time grows with the valid pixels, not the frame. A step from the frame's size alone
+    subsamples an object that fills a fifth of a 320 x 240 render like a full frame: multi-part objects
+    at 320 x 240 (21 seeded scenes, 70 parts) were 84% correct at step 2 and 94% at step 1, rendered
+    meshes likewise (benchmarks/RESULTS.md, 2026-12-06 evening). A Kinect frame of a table top (52-68%
+    valid at 640 x 480) keeps step 4."""
+    H, W = shape[:2]
+    step = max(1, int(round(np.sqrt(H * W / WORKING_PIXELS))))
+    if valid is None:
+        return step
+    valid = np.asarray(valid, bool)
+    finer = next((s for s in range(1, step) if valid[::s, ::s].sum() <= WORKING_VALID), step)
+    return finer
 
 
 def _cloud(data) -> np.ndarray:
@@ -235,7 +253,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     clock = Clock()
     full, step, cloud_sigma = None, 1, None
     if isinstance(data, RangeImage):
-        step = opts.extras.subsample or working_step(data.shape)
+        step = opts.extras.subsample or working_step(data.shape, data.valid)
         if step > 1:
             full, data = data, data.subsample(step)
     else:

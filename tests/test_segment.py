@@ -453,12 +453,33 @@ def test_a_failed_growth_step_is_tried_once_in_the_other_admission():
     assert not models.active[2]
 
 
+def test_working_step_follows_the_valid_pixels():
+    """The working step brings a full frame near 160 x 120, and is finer while the working image keeps
+    at most `WORKING_VALID` valid pixels: an object in a large frame is not subsampled like a frame."""
+    from sqjax.segmentation import WORKING_VALID, working_step
+
+    assert [working_step(s) for s in ((120, 160), (240, 320), (480, 640), (1080, 1920))] == [1, 2, 4, 10]
+    for shape in ((120, 160), (240, 320), (480, 640)):
+        assert working_step(shape, np.ones(shape, bool)) == working_step(shape)  # every pixel valid
+    rng = np.random.default_rng(0)
+    kinect = rng.random((480, 640)) < 0.55  # a table-top frame: half its pixels valid, all over it
+    assert working_step(kinect.shape, kinect) == 4
+    valid = np.zeros((240, 320), bool)
+    valid[60:150, 100:220] = True  # an object: 10,800 valid pixels
+    assert working_step(valid.shape, valid) == 1
+    valid = np.zeros((480, 640), bool)
+    valid[100:300, 200:400] = True  # 40,000 valid pixels: 10,000 at step 2
+    assert working_step(valid.shape, valid) == 2 and valid[::2, ::2].sum() <= WORKING_VALID < valid.sum()
+    assert working_step((480, 640), np.zeros((480, 640), bool)) == 1
+
+
 def test_large_images_are_segmented_at_a_working_resolution_and_labelled_in_full():
-    """A 240 x 320 image is segmented at 120 x 160 (step 2) and every full-size pixel is labelled by
-    the final models: the same parts are found, with labels at the input's size."""
-    image, truth = random_scene(3, n_parts=3, shape=(240, 320), noise=0.005)
+    """A 480 x 640 image (an eighth of it valid) is segmented at 240 x 320 (step 2) and every
+    full-size pixel is labelled by the final models: the same parts are found, with labels at the
+    input's size."""
+    image, truth = random_scene(3, n_parts=3, shape=(480, 640), noise=0.005)
     seg = segment(image)
-    assert seg.stats["subsample"] == 2 and seg.labels.shape == (240, 320)
+    assert seg.stats["subsample"] == 2 and seg.labels.shape == (480, 640)
     score = hoover(image.labels, seg.labels, tolerance=0.8)
     assert score.correct == len(truth) == len(seg.parts), score.to_dict()
     assert (seg.labels[image.valid] > 0).mean() > 0.95

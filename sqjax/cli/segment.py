@@ -76,7 +76,8 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         default=None,
         metavar="STEP",
         help="range images: segment at every STEP-th row and column and label every input pixel "
-        "with the final models (default: the step that brings the image near 160 x 120; 1 = the "
+        "with the final models (default: the step that brings the image near 160 x 120, finer where "
+        "few pixels are valid (an object in a large frame); 1 = the "
         "slow exact path); clouds: segment on one in STEP of the points and label every input point "
         "(default: the step that brings the cloud near 76,800 points; 1 = every point)",
     )
