@@ -907,9 +907,9 @@ def test_a_model_whose_own_points_cannot_determine_it_is_pruned():
 
 def test_an_island_of_a_label_goes_to_the_part_around_it():
     """Where two models nearly coincide, nearest-model labels alternate in blobs. A piece of model 1's
-    label enclosed by model 0's label and explained by model 0 is model 0's surface; model 1's largest
-    piece stays, and so does an island that model 0 does not explain everywhere or that touches a third
-    label."""
+    label enclosed by model 0's label and explained by model 0 over most of it is model 0's surface;
+    model 1's largest piece stays, and so does an island that model 0 explains at only half its pixels
+    or that touches a third label."""
     from sqjax.labelling import _join_islands
     from sqjax.segmentation import workspace
 
@@ -918,18 +918,20 @@ def test_an_island_of_a_label_goes_to_the_part_around_it():
     grid = np.zeros((24, 24), np.int64)
     grid[:, :6] = 1  # model 1's own piece, along the border
     grid[10:13, 14:17] = 1  # an island inside model 0's label
-    grid[2:4, 14:16] = 1  # an island that model 0 does not explain at one pixel
+    grid[2:4, 14:16] = 1  # an island that model 0 does not explain at two of its four pixels
+    grid[6:8, 18:20] = 1  # an island that model 0 does not explain at one of its four pixels
     grid[18:21, 12:15] = 1  # an island touching model 2's label
     grid[18:21, 15:18] = 2
     best = grid.ravel()[ws.dom.index].copy()
     has = np.ones(ws.P, bool)
     near = np.zeros((3, ws.P))
     near[2] = np.where(best == 2, 0.0, np.inf)
-    near[0, np.ravel_multi_index((2, 14), (24, 24))] = np.inf  # the pixels' flat index = their point index
+    for r, c in ((2, 14), (3, 15), (6, 18)):  # the pixels' flat index = their point index
+        near[0, np.ravel_multi_index((r, c), (24, 24))] = np.inf
     _join_islands(ws, best, has, near)
     out = best.reshape(24, 24)
     assert (out[:, :6] == 1).all()
-    assert (out[10:13, 14:17] == 0).all()
+    assert (out[10:13, 14:17] == 0).all() and (out[6:8, 18:20] == 0).all()
     assert (out[2:4, 14:16] == 1).all() and (out[18:21, 12:15] == 1).all()
     assert np.array_equal(out[grid != 1], grid[grid != 1])
 
