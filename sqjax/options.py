@@ -300,7 +300,7 @@ class ExtraOptions:
       `segmentation.working_step`: the step that brings the image nearest to
       `segmentation.WORKING_PIXELS` (160 x 120, the resolution every default here was measured at:
       640 x 480 -> 4), or a finer one while the working image keeps at most
-      `segmentation.WORKING_VALID` valid pixels (an object that fills a fifth of a 320 x 240 render:
+      `segmentation.WORKING_VALID` valid pixels (an object that fills an eighth of a 320 x 240 render:
       step 1); 1 = the slow exact path.
       Point clouds likewise: segmented on one in `subsample` of their points (a fixed random choice,
       `segmentation.working_subset`), every input point then labelled; None = nearest to

@@ -31,8 +31,8 @@ WORKING_PIXELS = 160 * 120
 """Range images are segmented at about this many pixels (`ExtraOptions.subsample`)."""
 WORKING_VALID = 13_100
 """A range image is segmented at a finer step than its frame's (`working_step`) while its working image
-keeps at most this many valid pixels: the most that the 59 mOSD frames hold at 160 x 120 (10,000 to
-13,100), on which the time per scene was measured (benchmarks/segment.py, median about 2 s)."""
+keeps at most this many valid pixels: about the most that the 59 mOSD frames hold at 160 x 120 (10,035
+to 13,104), on which the time per scene was measured (benchmarks/segment.py, median about 2 s)."""
 WORKING_POINTS = 4 * WORKING_PIXELS
 """Point clouds are segmented on about this many of their points (`ExtraOptions.subsample`).
 
@@ -104,7 +104,7 @@ def working_step(shape, valid: np.ndarray | None = None) -> int:
     None = all) stay within `WORKING_VALID`.
 
     Segmentation's time grows with the valid pixels, not the frame. A step from the frame's size alone
-    subsamples an object that fills a fifth of a 320 x 240 render like a full frame: multi-part objects
+    subsamples an object that fills an eighth of a 320 x 240 render like a full frame: multi-part objects
     at 320 x 240 (21 seeded scenes, 70 parts) were 84% correct at step 2 and 94% at step 1, rendered
     meshes likewise (benchmarks/RESULTS.md, 2026-12-06 evening). A Kinect frame of a table top (52-68%
     valid at 640 x 480) keeps step 4."""
@@ -113,8 +113,7 @@ def working_step(shape, valid: np.ndarray | None = None) -> int:
     if valid is None:
         return step
     valid = np.asarray(valid, bool)
-    finer = next((s for s in range(1, step) if valid[::s, ::s].sum() <= WORKING_VALID), step)
-    return finer
+    return next((s for s in range(1, step) if valid[::s, ::s].sum() <= WORKING_VALID), step)
 
 
 def _cloud(data) -> np.ndarray:
