@@ -280,6 +280,18 @@ def multipart(s, shape=(120, 160)):
     return image, parts, image.labels
 
 
+def multipart_item(s, shape=(120, 160)):
+    """Multi-part scene s as a suite's item: (range image, truth labels, `run_scene` kwargs)."""
+    image, parts, truth = multipart(s, shape)
+    return image, truth, {"truth_sq": parts}
+
+
+def mesh_item(path, view, shape=(120, 160)):
+    """`mesh_scene` as a suite's item: (range image, truth labels, `run_scene` kwargs)."""
+    image = mesh_scene(path, view, shape)
+    return image, image.labels, {}
+
+
 def perturbed(image, eps):
     """`image` with its depths and organised points scaled by 1 + eps (see `--perturb`); a cloud's
     points scaled."""
@@ -400,52 +412,32 @@ def main(argv=None):
 
         scenes["synthetic"] = [(f"random:{s}", lambda s=s: synthetic(s)) for s in range(n_syn)]
     if "multipart" in suites:
-
-        def mp(s):
-            image, parts, truth = multipart(s)
-            return image, truth, {"truth_sq": parts}
-
-        scenes["multipart"] = [(f"{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: mp(s)) for s in range(n_mp)]
+        scenes["multipart"] = [(f"{OBJECTS[s % len(OBJECTS)]}:{s}", lambda s=s: multipart_item(s)) for s in range(n_mp)]
     mosd_files = sorted((DATA / "mosd").glob("*/*.pcd"))
     if "mosd" in suites:
         files = mosd_files[:: max(1, len(mosd_files) // 6)] if args.quick else mosd_files
         if not files:
             print(f"mOSD not found under {DATA / 'mosd'}: skipped (set SQJAX_DATA)", file=sys.stderr)
         scenes["mosd"] = [(f.stem, lambda f=f: (*mosd_scene(f, args.mosd_step), {"table": 1})) for f in files]
+    views = range(1 if args.quick else 3)
+    found = [DATA / m for m in MESHES if (DATA / m).exists()]
     if "meshes" in suites:
-        found = [DATA / m for m in MESHES if (DATA / m).exists()]
         if not found:
             print(f"meshes not found under {DATA}: skipped (set SQJAX_DATA)", file=sys.stderr)
-
-        def mesh(p, v):
-            image = mesh_scene(p, v)
-            return image, image.labels, {}
-
-        scenes["meshes"] = [
-            (f"{p.stem}:{v}", lambda p=p, v=v: mesh(p, v)) for p in found for v in range(1 if args.quick else 3)
-        ]
+        scenes["meshes"] = [(f"{p.stem}:{v}", lambda p=p, v=v: mesh_item(p, v)) for p in found for v in views]
     if "sizes" in suites:
-        found = [DATA / m for m in MESHES if (DATA / m).exists()]
-
-        def sized(shape, s=None, p=None, v=None):
-            if p is None:
-                image, parts, truth = multipart(s, shape)
-                return image, truth, {"truth_sq": parts}
-            image = mesh_scene(p, v, shape)
-            return image, image.labels, {}
-
         n_sized = 7 if args.quick else min(n_mp, 21)
         scenes["sizes"] = [
             item
-            for shape in SIZES
+            for sh in SIZES
             for item in [
-                (f"multipart@{shape[1]}x{shape[0]}:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda sh=shape, s=s: sized(sh, s))
+                (f"multipart@{sh[1]}x{sh[0]}:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda sh=sh, s=s: multipart_item(s, sh))
                 for s in range(n_sized)
             ]
             + [
-                (f"meshes@{shape[1]}x{shape[0]}:{p.stem}:{v}", lambda sh=shape, p=p, v=v: sized(sh, p=p, v=v))
+                (f"meshes@{sh[1]}x{sh[0]}:{p.stem}:{v}", lambda sh=sh, p=p, v=v: mesh_item(p, v, sh))
                 for p in found
-                for v in range(1 if args.quick else 3)
+                for v in views
             ]
         ]
     if "clouds" in suites:
@@ -488,7 +480,6 @@ def main(argv=None):
             results[suite]["groups"] = {
                 g: summarise([r for r in rows if group(r) == g]) for g in sorted({group(r) for r in rows})
             }
-            results[suite]["steps"] = {r["scene"]: r["subsample"] for r in rows}
         if suite == "mosd":
             results[suite]["step"] = args.mosd_step
             results[suite]["categories"] = {
