@@ -429,8 +429,33 @@ def test_merge_candidates_grow_linearly_with_the_models():
     regions = np.zeros((200, 4000), bool)
     regions[np.arange(4000) % 200, np.arange(4000)] = True
     pairs = merge_candidates(pts, regions)
-    assert len(pairs) <= MERGE_NEIGHBOURS * 200 and {i for p in pairs for i in p} == set(range(200))
+    assert len(pairs) <= 2 * MERGE_NEIGHBOURS * 200 and {i for p in pairs for i in p} == set(range(200))
     assert len(merge_candidates(pts, regions[:5])) == 10  # few models: every pair, as before
+
+
+def test_merge_candidates_pair_pieces_whose_points_are_near():
+    """In a range image, two pieces 0.1 apart (an object an occluder split) are a candidate pair although
+    the bounding spheres of long rods passing 0.5 away overlap theirs (a table's sphere holds every
+    object on it)."""
+    from sqjax.postprocess import MERGE_NEIGHBOURS, merge_candidates
+
+    rng = np.random.default_rng(0)
+    blob = lambda c: c + 0.01 * rng.normal(size=(30, 3))
+    t = np.linspace(-2, 2, 200)[:, None]
+    rods = [
+        np.array([0.5 * np.cos(a), 0.5 * np.sin(a), 0.0]) + t * np.array([-np.sin(a), np.cos(a), 0.0])
+        for a in np.linspace(0, np.pi, 2 * MERGE_NEIGHBOURS + 1)
+    ]
+    sets = [blob(np.zeros(3)), blob(np.array([0.0, 0.0, 0.1])), *rods]
+    pts = np.concatenate(sets)
+    regions = np.zeros((len(sets), len(pts)), bool)
+    start = np.cumsum([0] + [len(s) for s in sets])
+    for k in range(len(sets)):
+        regions[k, start[k] : start[k + 1]] = True
+    pairs = merge_candidates(pts, regions)
+    assert (0, 1) in pairs
+    assert (0, 1) not in merge_candidates(pts, regions, one_view=False)  # a cloud: the spheres' list alone
+    assert {(0, k) for k in range(2, len(sets))} & set(pairs)  # the rods, nearest by their spheres
 
 
 def test_a_failed_growth_step_is_tried_once_in_the_other_admission():
