@@ -166,7 +166,7 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
       keeps the first list: there the nearest pieces by their points are the touching parts of one
       object (a chair's seat and back), and their unions cost Bobkov's rooms 27 -> 23 parts.
 
-    Over the whole benchmark (benchmarks/RESULTS.md, 2026-12-06 night), against the sphere gap alone:
+    Over the whole benchmark (benchmarks/RESULTS.md, 2026-12-06 late evening), against the sphere gap alone:
     mOSD 260 -> 262 of 285 objects, every other image suite the same; the point gap alone, mOSD 259
     (a complex scene's table left in pieces)."""
     from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
