@@ -166,11 +166,9 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
       keeps the first list: there the nearest pieces by their points are the touching parts of one
       object (a chair's seat and back), and their unions cost Bobkov's rooms 27 -> 23 parts.
 
-    Over the whole benchmark (benchmarks/RESULTS.md, 2026-12-06 late evening), against the sphere gap alone:
-    mOSD 260 -> 262 of 285 objects, every other image suite the same; the point gap alone, mOSD 259
-    (a complex scene's table left in pieces)."""
-    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
-
+    Over the whole benchmark (benchmarks/RESULTS.md, 2026-12-06 late evening), against the sphere
+    gap alone: mOSD 260 -> 262 of 285 objects, every other image suite the same; the point gap
+    alone, mOSD 259 (a complex scene's table left in pieces)."""
     M = len(regions)
     if M <= 2 * MERGE_NEIGHBOURS + 1:
         return [(i, j) for i in range(M) for j in range(i + 1, M)]
@@ -180,6 +178,12 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
     sphere = np.linalg.norm(centre[:, None] - centre[None], axis=-1) - radius[:, None] - radius[None]
     np.fill_diagonal(sphere, np.inf)
     order = np.argsort(sphere, 1, kind="stable")[:, : M - 1]
+    out = {(min(i, int(j)), max(i, int(j))) for i in range(M) for j in order[i, :MERGE_NEIGHBOURS]}
+    if not one_view:
+        return sorted(out)
+
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
+
     trees: dict = {}
     gaps: dict = {}
 
@@ -191,8 +195,7 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
             gaps[i, j] = gaps[j, i] = float(trees[a].query(members[b], 1)[0].min())
         return gaps[i, j]
 
-    out = {(min(i, int(j)), max(i, int(j))) for i in range(M) for j in order[i, :MERGE_NEIGHBOURS]}
-    for i in range(M if one_view else 0):
+    for i in range(M):
         near: list = []  # (point gap, j): the MERGE_NEIGHBOURS nearest so far
         for j in order[i]:
             if len(near) == MERGE_NEIGHBOURS and sphere[i, j] > near[-1][0]:
