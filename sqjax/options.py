@@ -253,7 +253,10 @@ class ExtraOptions:
       (99.5% -> 99.0%), gained clouds (74.5% -> 77.6%, within their spread). A union the selection
       keeps grows on and merging repeats (`segmentation.MERGE_ROUNDS`): one round left a sphere
       sampled all round in 3-11 caps; measured 2026-12-05 (evening): mOSD 89.8% -> 90.9%, closed
-      clouds (dense) 18 -> 19 of 24 parts, the rest within their spreads.
+      clouds (dense) 18 -> 19 of 24 parts, the rest within their spreads. The pairs tried are each
+      model's nearest few (`postprocess.merge_candidates`: by bounding spheres, and in range images
+      by the gap between the regions' points, so that an occluder's pieces meet; 2026-12-06: mOSD
+      91.2% -> 91.9%).
     - `reseed`: rounds of a second chance after the final selection: seed again where no selected model
       explains the data, grow those seeds and select among old and new (parts whose hypotheses lost
       early to a neighbour's). 0 = the paper's single pass. Measured over every suite (2026-12-04):
