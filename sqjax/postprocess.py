@@ -148,6 +148,8 @@ def _violations(ws: Workspace, theta: np.ndarray, box: bool = False) -> np.ndarr
 
 
 MERGE_NEIGHBOURS = 4
+"""The nearest models each model is paired with, in each of `merge_candidates`' lists. The point-gap
+list measured with 2, 4 and 6 (benchmarks/RESULTS.md, 2026-12-06 late evening): mOSD 261, 262, 261."""
 
 
 def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = True) -> list:
