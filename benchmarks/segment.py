@@ -427,19 +427,16 @@ def main(argv=None):
         scenes["meshes"] = [(f"{p.stem}:{v}", lambda p=p, v=v: mesh_item(p, v)) for p in found for v in views]
     if "sizes" in suites:
         n_sized = 7 if args.quick else min(n_mp, 21)
-        scenes["sizes"] = [
-            item
-            for sh in SIZES
-            for item in [
-                (f"multipart@{sh[1]}x{sh[0]}:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda sh=sh, s=s: multipart_item(s, sh))
+        scenes["sizes"] = []
+        for h, w in SIZES:  # per size: the multi-part objects, then the meshes
+            scenes["sizes"] += [
+                (f"multipart@{w}x{h}:{OBJECTS[s % len(OBJECTS)]}:{s}", lambda sh=(h, w), s=s: multipart_item(s, sh))
                 for s in range(n_sized)
-            ]
-            + [
-                (f"meshes@{sh[1]}x{sh[0]}:{p.stem}:{v}", lambda sh=sh, p=p, v=v: mesh_item(p, v, sh))
+            ] + [
+                (f"meshes@{w}x{h}:{p.stem}:{v}", lambda sh=(h, w), p=p, v=v: mesh_item(p, v, sh))
                 for p in found
                 for v in views
             ]
-        ]
     if "clouds" in suites:
         scenes["clouds"] = cloud_scenes(mosd_files[:: 6 if args.quick else 3], args.mosd_step, (n_mp + 1) // 2)
     if "rooms" in suites:
