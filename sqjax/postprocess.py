@@ -18,16 +18,28 @@ from .visibility import free_space_violations, seen_through, void_violations
 from .workspace import Workspace
 
 
-def merge(ws: Workspace, models: Models, tried: dict | None = None) -> Models:
-    """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits).
+@dataclasses.dataclass
+class MergeMemory:
+    """What `merge`'s rounds keep for the next round of one segmentation. Stopped models keep their
+    parameters and regions exactly, so:
 
-    `tried` remembers the outcome of every pair (keyed by both models' parameters and regions), so
-    that a later round (after reseeding) fits only the pairs it has not seen: stopped models keep
-    their parameters and regions exactly, and a pair's union fit and tests depend on nothing else."""
-    tried = {} if tried is None else tried
+    - `unions`: the outcome of every pair tried (keyed by both models' parameters and regions): a
+      pair's union fit and tests depend on nothing else, so a later round fits only the pairs it has
+      not seen;
+    - `gaps`: the point gaps `merge_candidates` measured (keyed by both regions)."""
+
+    unions: dict = dataclasses.field(default_factory=dict)
+    gaps: dict = dataclasses.field(default_factory=dict)
+
+
+def merge(ws: Workspace, models: Models, memory: MergeMemory | None = None) -> Models:
+    """Hypotheses for pairs of selected models that one superquadric may explain (occlusion splits).
+    `memory` carries what earlier rounds measured (`MergeMemory`)."""
+    memory = MergeMemory() if memory is None else memory
+    tried = memory.unions
     keep_fraction = ws.opts.growth.keep_fraction
     key = [models.theta[i].tobytes() + np.packbits(models.regions[i]).tobytes() for i in range(len(models.theta))]
-    candidates = merge_candidates(ws.host_points, models.regions, one_view=ws.dom.is_image)
+    candidates = merge_candidates(ws.host_points, models.regions, one_view=ws.dom.is_image, known=memory.gaps)
     pairs = [p for p in candidates if (key[p[0]], key[p[1]]) not in tried]
     new = _union_hypotheses(ws, models, pairs, keep_fraction) if pairs else {}
     for p in pairs:
@@ -152,7 +164,7 @@ MERGE_NEIGHBOURS = 4
 list measured with 2, 4 and 6 (benchmarks/RESULTS.md, 2026-12-06 late evening): mOSD 261, 262, 261."""
 
 
-def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = True) -> list:
+def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = True, known: dict | None = None) -> list:
     """Pairs (i, j), i < j, of models worth a union fit: every pair when there are few models, else each
     model with its `MERGE_NEIGHBOURS` nearest by the gaps below, so that the union fits grow linearly
     with the number of models, not quadratically (a scene of hundreds of selected pieces must not cost
@@ -167,6 +179,8 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
       order of sphere gap until it exceeds the `MERGE_NEIGHBOURS`-th found. A cloud (no viewpoint)
       keeps the first list: there the nearest pieces by their points are the touching parts of one
       object (a chair's seat and back), and their unions cost Bobkov's rooms 27 -> 23 parts.
+      `known` (filled in) holds the point gaps measured so far, keyed by both regions: a merge round
+      measures only the pairs with a region the previous rounds did not have.
 
     Over the whole benchmark (benchmarks/RESULTS.md, 2026-12-06 late evening), against the sphere
     gap alone: mOSD 260 -> 262 of 285 objects, every other image suite the same; the point gap
@@ -187,15 +201,17 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
     from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
 
     trees: dict = {}
-    gaps: dict = {}
+    known = {} if known is None else known
+    key = [np.packbits(r).tobytes() for r in regions]
 
     def gap(i, j):
-        if (i, j) not in gaps:
+        pair = (key[i], key[j]) if key[i] <= key[j] else (key[j], key[i])
+        if pair not in known:
             a, b = (i, j) if len(members[i]) >= len(members[j]) else (j, i)  # the smaller set queries
             if a not in trees:
                 trees[a] = cKDTree(members[a])
-            gaps[i, j] = gaps[j, i] = float(trees[a].query(members[b], 1)[0].min())
-        return gaps[i, j]
+            known[pair] = float(trees[a].query(members[b], 1)[0].min())
+        return known[pair]
 
     for i in range(M):
         near: list = []  # (point gap, j): the MERGE_NEIGHBOURS nearest so far

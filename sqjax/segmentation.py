@@ -19,7 +19,7 @@ from .growth import grow
 from .hypotheses import Models
 from .labelling import Part, label_cloud, label_full, label_image, parts
 from .options import SegmentOptions
-from .postprocess import merge, part_volumes, prune_redundant
+from .postprocess import MergeMemory, merge, part_volumes, prune_redundant
 from .rangeimage import RangeImage
 from .seeds import cloud_seeds, image_seeds, seed, surface_seeds
 from .selection import SelectionWeights, build_q, select
@@ -267,7 +267,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     opts, dom = ws.opts, ws.dom
     models, ws = seed(ws)
     weights = opts.selection.weights or SelectionWeights.for_threshold(ws.tau)
-    history, tried_unions, reseeded = [], {}, set()
+    history, merged, reseeded = [], MergeMemory(), set()
     stats = {
         "seeds": len(dom.seeds),
         "seed_models": len(models.theta),
@@ -316,7 +316,7 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
             n = len(models.theta)
             if n < 2:
                 break
-            models = merge(ws, models, tried_unions)
+            models = merge(ws, models, merged)
             if len(models.theta) == n:
                 break
             selected = True

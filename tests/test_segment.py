@@ -456,6 +456,16 @@ def test_merge_candidates_pair_pieces_whose_points_are_near():
     assert (0, 1) in pairs
     assert (0, 1) not in merge_candidates(pts, regions, one_view=False)  # a cloud: the spheres' list alone
     assert {(0, k) for k in range(2, len(sets))} & set(pairs)  # the rods, nearest by their spheres
+    # a later merge round reuses the gaps measured before: the same pairs, nothing measured again,
+    # and a new region's pairs measured anew
+    known: dict = {}
+    assert merge_candidates(pts, regions, known=known) == pairs and known
+    measured = dict(known)
+    assert merge_candidates(pts, regions, known=known) == pairs and known == measured
+    moved = regions.copy()
+    moved[1] = np.roll(regions[1], 1)
+    merge_candidates(pts, moved, known=known)
+    assert len(known) > len(measured) and all(known[p] == measured[p] for p in measured)
 
 
 def test_a_failed_growth_step_is_tried_once_in_the_other_admission():
