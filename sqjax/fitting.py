@@ -264,8 +264,8 @@ def _checked_points(xp, points, mask, dtype):
     (K, N) and whether the input was one problem; ValueErrors that name the problem."""
     if not _is_traced(points):
         points = np.asarray(points)
-        if not np.issubdtype(points.dtype, np.number):
-            raise ValueError(f"fit: points must be numeric, got dtype {points.dtype}")
+        if not np.issubdtype(points.dtype, np.number) or np.iscomplexobj(points):
+            raise ValueError(f"fit: points must be real numbers, got dtype {points.dtype}")
     if points.ndim not in (2, 3) or points.shape[-1] != 3:
         raise ValueError(f"fit: points must have shape (N, 3) or (K, N, 3), got {tuple(points.shape)}")
     single = points.ndim == 2

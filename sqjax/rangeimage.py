@@ -115,8 +115,8 @@ class RangeImage:
         depth = np.asarray(self.depth)
         if depth.ndim != 2 or min(depth.shape) < 1:
             raise ValueError(f"RangeImage: depth must be a non-empty (H, W) array, got shape {depth.shape}")
-        if not np.issubdtype(depth.dtype, np.number):
-            raise ValueError(f"RangeImage: depth must be numeric, got dtype {depth.dtype}")
+        if not np.issubdtype(depth.dtype, np.number) or np.iscomplexobj(depth):
+            raise ValueError(f"RangeImage: depth must be real numbers, got dtype {depth.dtype}")
         if not isinstance(self.camera, (PinholeCamera, OrthographicCamera)):
             raise ValueError(f"RangeImage: camera must be a PinholeCamera or OrthographicCamera, got {self.camera!r}")
         depth = depth.astype(np.float32 if depth.dtype != np.float64 else np.float64)

@@ -123,6 +123,8 @@ def _cloud(data) -> np.ndarray:
             " (sqjax.read_range_image, sqjax.read_points)"
         )
     try:
+        if np.iscomplexobj(data):
+            raise TypeError("complex numbers")
         pts = np.asarray(data, np.float64)
     except (TypeError, ValueError) as err:
         raise ValueError(
@@ -258,6 +260,12 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     else:
         cloud = _cloud(data)
         distinct = distinct_rows(cloud)
+        valid = int(np.isfinite(cloud).all(1).sum())
+        if distinct.size < min(opts.seeds.min_seed_points, valid):
+            raise ValueError(
+                f"segment: {valid} valid points, but {distinct.size} distinct position"
+                f"{'' if distinct.size == 1 else 's'}; at least {opts.seeds.min_seed_points} distinct points are needed"
+            )
         data, step = working_subset(cloud, distinct, opts.extras.subsample)
         if data is not cloud:  # every input row is labelled by the final models
             full = cloud

@@ -185,7 +185,8 @@ def test_float64_path(batch):
         (np.random.default_rng(0).normal(size=(2, 50, 3)), {"mask": np.ones((50,), bool)}, "mask shape"),
         (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.float64}, "x64"),
         (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.int32}, "dtype"),
-        (np.array([["a", "b", "c"]] * 20), {}, "numeric"),
+        (np.array([["a", "b", "c"]] * 20), {}, "real numbers"),
+        (np.ones((20, 3), complex), {}, "real numbers"),
     ],
 )
 def test_bad_input_raises_value_error(points, kwargs, message):

@@ -150,6 +150,7 @@ def test_bad_orthographic(pixel_size):
         np.float64(1.0),
         np.array([["a", "b"], ["c", "d"]]),
         np.ones((2, 2), bool),
+        np.ones((2, 2), complex),
     ],
 )
 def test_bad_depth(depth):

@@ -103,12 +103,28 @@ def test_degenerate_images_get_a_clear_error(depth, message):
 
 
 @pytest.mark.parametrize(
-    "data", [np.zeros((5, 4)), (np.zeros((5, 3)), "point_cloud"), "cloud.ply", [[1.0, 2.0, 3.0], [1.0, 2.0]]]
+    "data",
+    [
+        np.zeros((5, 4)),
+        (np.zeros((5, 3)), "point_cloud"),
+        "cloud.ply",
+        [[1.0, 2.0, 3.0], [1.0, 2.0]],
+        np.ones((50, 3), complex),
+    ],
 )
 def test_bad_input_type(data):
-    """A wrong shape, a (points, kind) pair, a path or ragged rows: an error naming what segment takes."""
+    """A wrong shape, a (points, kind) pair, a path, ragged rows or complex numbers: an error naming
+    what segment takes."""
     with pytest.raises(ValueError, match="RangeImage or an"):
         segment(data)
+
+
+@pytest.mark.parametrize("copies", [30, 500])
+def test_a_cloud_of_copies_of_few_points_says_so(copies):
+    """Valid rows that repeat too few positions (a point written many times) are not "1 valid point":
+    the error counts both."""
+    with pytest.raises(ValueError, match=rf"{copies} valid points, but 1 distinct position"):
+        segment(np.ones((copies, 3)))
 
 
 def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
