@@ -16,6 +16,7 @@ import numpy as np
 
 from . import parallel
 from .chart import NUM_PARAMS, num_params
+from .numerics import is_real
 from .padding import bucket
 from .solver import fit_kernel, fit_sharded
 from .status import FAILED, status_flags
@@ -264,7 +265,7 @@ def _checked_points(xp, points, mask, dtype):
     (K, N) and whether the input was one problem; ValueErrors that name the problem."""
     if not _is_traced(points):
         points = np.asarray(points)
-        if not np.issubdtype(points.dtype, np.number) or np.iscomplexobj(points):
+        if not is_real(points.dtype):
             raise ValueError(f"fit: points must be real numbers, got dtype {points.dtype}")
     if points.ndim not in (2, 3) or points.shape[-1] != 3:
         raise ValueError(f"fit: points must have shape (N, 3) or (K, N, 3), got {tuple(points.shape)}")

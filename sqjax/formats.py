@@ -27,6 +27,7 @@ from typing import Any, Literal, overload
 
 import numpy as np
 
+from .numerics import is_real
 from .pcd import fit_pinhole, pcd_height, pcd_image, read_pcd, write_pcd
 from .rangeimage import Camera, OrthographicCamera, PinholeCamera, RangeImage
 from .rgbd import intrinsics_of, open_image, read_intrinsics, with_colors
@@ -147,8 +148,8 @@ def check_depth_scale(depth_scale, what: str = "depth_scale"):
 
 def _range_image(parts, camera, scale):
     depth, labels, points, stored, colors = parts
-    if np.ndim(depth) != 2 or not np.issubdtype(depth.dtype, np.number):
-        raise ValueError(f"depth must be a numeric (H, W) array, got {depth.dtype} of shape {depth.shape}")
+    if np.ndim(depth) != 2 or not is_real(depth.dtype):
+        raise ValueError(f"depth must be a real numeric (H, W) array, got {depth.dtype} of shape {depth.shape}")
     if scale is not None:
         depth, points = depth / scale, None if points is None else points / scale
     camera = stored if camera is None else camera
@@ -230,9 +231,9 @@ def _text_points(path):
 
 def _npy_points(path):
     pts = _load_npy(path)
-    if not (_cloud_shape(pts.shape) and np.issubdtype(pts.dtype, np.number)):
+    if not (_cloud_shape(pts.shape) and is_real(pts.dtype)):
         raise ValueError(
-            f"points must be a numeric (N, 3) array (x y z, up to {_MAX_COLUMNS - 3} more columns), got "
+            f"points must be a real numeric (N, 3) array (x y z, up to {_MAX_COLUMNS - 3} more columns), got "
             f"{pts.dtype} of shape {pts.shape}"
         )
     return pts[:, :3].astype(np.float64), None
@@ -453,8 +454,8 @@ def write_points(path, points) -> None:
     """Write `(N, 3)` points as `.ply` (binary float64 vertices), `.npy` (float64) or `.xyz` / `.txt`."""
     path, fn = _handler(path, 3, "write_points")
     pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
-        raise ValueError(f"{path}: points must be a numeric (N, 3) array, got {pts.dtype} of shape {pts.shape}")
+    if pts.ndim != 2 or pts.shape[1] != 3 or not is_real(pts.dtype):
+        raise ValueError(f"{path}: points must be a real numeric (N, 3) array, got {pts.dtype} of shape {pts.shape}")
     from .files import atomic_paths
 
     with atomic_paths(path) as (tmp,):

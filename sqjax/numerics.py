@@ -26,6 +26,12 @@ def eps(name: str, dtype) -> float:
     return f32 if np.dtype(dtype) == np.float32 else f64
 
 
+def is_real(dtype) -> bool:
+    """Whether `dtype` holds real numbers (integers or floats): not bool, not strings or objects, and not
+    complex, whose cast to float would drop the imaginary part with only numpy's warning."""
+    return bool(np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating))
+
+
 def to_device(x, dtype):
     """Host data (array-like) -> a device array of `dtype`, converted by numpy on the host.
 

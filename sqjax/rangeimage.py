@@ -11,6 +11,8 @@ import dataclasses
 
 import numpy as np
 
+from .numerics import is_real
+
 
 @dataclasses.dataclass(frozen=True)
 class PinholeCamera:
@@ -115,7 +117,7 @@ class RangeImage:
         depth = np.asarray(self.depth)
         if depth.ndim != 2 or min(depth.shape) < 1:
             raise ValueError(f"RangeImage: depth must be a non-empty (H, W) array, got shape {depth.shape}")
-        if not np.issubdtype(depth.dtype, np.number) or np.iscomplexobj(depth):
+        if not is_real(depth.dtype):
             raise ValueError(f"RangeImage: depth must be real numbers, got dtype {depth.dtype}")
         if not isinstance(self.camera, (PinholeCamera, OrthographicCamera)):
             raise ValueError(f"RangeImage: camera must be a PinholeCamera or OrthographicCamera, got {self.camera!r}")

@@ -260,12 +260,11 @@ def segment(data, *, options: SegmentOptions | None = None, k: int = 8, progress
     else:
         cloud = _cloud(data)
         distinct = distinct_rows(cloud)
-        valid = int(np.isfinite(cloud).all(1).sum())
-        if distinct.size < min(opts.seeds.min_seed_points, valid):
-            raise ValueError(
-                f"segment: {valid} valid points, but {distinct.size} distinct position"
-                f"{'' if distinct.size == 1 else 's'}; at least {opts.seeds.min_seed_points} distinct points are needed"
-            )
+        if distinct.size < opts.seeds.min_seed_points:  # one check for too few points and for copies
+            valid, n = int(np.isfinite(cloud).all(1).sum()), distinct.size
+            copies = f", but {n} distinct position{'' if n == 1 else 's'}" if n < valid else ""
+            need = opts.seeds.min_seed_points
+            raise ValueError(f"segment: {valid} valid points{copies}; at least {need} distinct points are needed")
         data, step = working_subset(cloud, distinct, opts.extras.subsample)
         if data is not cloud:  # every input row is labelled by the final models
             full = cloud

@@ -496,6 +496,15 @@ def test_bad_arrays(tmp_path):
             read_range_image(tmp_path / name, camera=None if name.endswith(".npz") else CAM)
     with pytest.raises(ValueError, match=r"pts2\.npy.*\(N, 3\)"):
         read_points(tmp_path / "pts2.npy")
+    # complex numbers would lose their imaginary part in the cast to float: refused, as by segment and fit
+    np.save(tmp_path / "complex.npy", np.ones((30, 3), complex))
+    np.save(tmp_path / "complex_depth.npy", np.ones((4, 4), complex))
+    with pytest.raises(ValueError, match=r"complex\.npy.*real numeric \(N, 3\).*complex128"):
+        read_points(tmp_path / "complex.npy")
+    with pytest.raises(ValueError, match=r"complex_depth\.npy.*real numeric \(H, W\)"):
+        read_range_image(tmp_path / "complex_depth.npy", camera=CAM)
+    with pytest.raises(ValueError, match=r"real numeric \(N, 3\)"):
+        write_points(tmp_path / "out.ply", np.ones((30, 3), complex))
     (tmp_path / "two.txt").write_text("1 2\n3 4\n")
     (tmp_path / "words.xyz").write_text("x y z\n1 2 3\n")
     for name in ("two.txt", "words.xyz"):
