@@ -163,9 +163,29 @@ def draw_superquadrics(
     return np.concatenate(verts_all) if verts_all else np.zeros((0, 3))
 
 
-def _scatter(ax, pts, c, *, cmap=None, max_points=6000, size=1.0):
+FAR_QUANTILE = 0.005
+"""The 3-D point panels span the points between these quantiles of each axis (and as much again around
+them, `_bulk`): a few flying pixels metres behind a table top (RealSense, stereo) would shrink the scene
+to a dot."""
+
+
+def _bulk(pts: np.ndarray) -> np.ndarray:
+    """(P,) bool: the finite points (P, 3) inside the box of the `FAR_QUANTILE` .. 1 - `FAR_QUANTILE`
+    quantiles of each axis, widened by that box's size on each side."""
     pts = np.asarray(pts, float)
-    keep = np.isfinite(pts).all(-1)
+    ok = np.asarray(np.isfinite(pts).all(-1))
+    if not ok.any():
+        return ok
+    lo, hi = np.quantile(pts[ok], [FAR_QUANTILE, 1.0 - FAR_QUANTILE], axis=0)
+    span = hi - lo
+    return ok & np.asarray(((pts >= lo - span) & (pts <= hi + span)).all(-1))
+
+
+def _scatter(ax, pts, c, *, cmap=None, max_points=6000, size=1.0, keep=None):
+    """Scatter at most `max_points` of the finite points (P, 3) (of those in `keep` (P,) bool, if given),
+    evenly strided; returns them in the plot frame."""
+    pts = np.asarray(pts, float)
+    keep = np.isfinite(pts).all(-1) if keep is None else keep & np.isfinite(pts).all(-1)
     idx = np.flatnonzero(keep)
     if idx.size > max_points:
         idx = idx[np.linspace(0, idx.size - 1, max_points).astype(np.int64)]
@@ -271,14 +291,20 @@ def figure_sequence(
         ax.set_title("(a) range image")
         ax.set_axis_off()
         ax = fig.add_subplot(spec[0, 1], projection="3d")
-        pts = image.points
+        pts = image.points.reshape(-1, 3)
+        bulk = _bulk(pts)
         if image.colors is not None:  # an RGB-D frame or a coloured PCD: the points in their own colours
-            shown = _scatter(ax, pts.reshape(-1, 3), image.colors.reshape(-1, 3) / 255.0, max_points=max_points)
+            shown = _scatter(ax, pts, image.colors.reshape(-1, 3) / 255.0, max_points=max_points, keep=bulk)
         else:
-            shown = _scatter(ax, pts.reshape(-1, 3), pts.reshape(-1, 3)[:, 2], cmap=cmap, max_points=max_points)
+            shown = _scatter(ax, pts, pts[:, 2], cmap=cmap, max_points=max_points, keep=bulk)
         _equal_3d(ax, shown)
         _style_3d(ax)
-        ax.set_title("(b) points (x, y, z)" + (", in colour" if image.colors is not None else ""))
+        far = int(image.valid.sum() - bulk.sum())
+        ax.set_title(
+            "(b) points (x, y, z)"
+            + (", in colour" if image.colors is not None else "")
+            + (f"\n{far} far point{'s' if far != 1 else ''} not drawn" if far else "")
+        )
         final_labels = np.asarray(segmentation.labels)
         # the models are ray cast no finer than a panel's pixels (a third of the figure's width)
         step = max(1, int(np.ceil(max(H, W) / (fig.get_figwidth() * dpi / 3))))
@@ -306,10 +332,14 @@ def figure_sequence(
         pts = np.asarray(image, float)
         cmap = _depth_cmap()
         ax = fig.add_subplot(spec[0, 0], projection="3d")
-        shown = _scatter(ax, pts, pts[:, 2], cmap=cmap, max_points=max_points)
+        bulk = _bulk(pts)
+        shown = _scatter(ax, pts, pts[:, 2], cmap=cmap, max_points=max_points, keep=bulk)
         _equal_3d(ax, shown)
         _style_3d(ax)
-        ax.set_title("(a) points, coloured by depth")
+        far = int(np.isfinite(pts).all(-1).sum() - bulk.sum())
+        ax.set_title(
+            "(a) points, coloured by depth" + (f"\n{far} far point{'s' if far != 1 else ''} not drawn" if far else "")
+        )
         final_labels = np.asarray(segmentation.labels)
         for k, (name, models) in enumerate(panels):
             ax = fig.add_subplot(spec[(1 + k) // 3, (1 + k) % 3], projection="3d")
@@ -318,7 +348,7 @@ def figure_sequence(
                 if k == 2
                 else label_colors(len(models) + n_final)[_match_cloud(models, pts, final_labels, n_final)]
             )
-            _scatter(ax, pts, [(_DATA_GREY,) * 3], max_points=max_points, size=0.5)
+            _scatter(ax, pts, [(_DATA_GREY,) * 3], max_points=max_points, size=0.5, keep=bulk)
             # the data's box with a fifth of its size around: a swollen growth model is cut there
             lo, hi = shown.min(0), shown.max(0)
             box = np.stack([lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo)])
@@ -328,7 +358,7 @@ def figure_sequence(
             ax.set_title(f"({'bcd'[k]}) {name}")
         ax = fig.add_subplot(spec[1, 1], projection="3d")
         lut = np.concatenate([np.array([[96, 96, 96]], np.uint8), label_colors(n_final)]) / 255.0
-        _scatter(ax, pts, lut[final_labels], max_points=max_points)
+        _scatter(ax, pts, lut[final_labels], max_points=max_points, keep=bulk)
         _equal_3d(ax, shown)
         _style_3d(ax)
         ax.set_title(f"(e) labelled points: {n_final} part{'s' if n_final != 1 else ''}")

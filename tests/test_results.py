@@ -228,6 +228,36 @@ def test_cloud_figure_panels_keep_to_the_data_when_a_model_is_swollen():
         assert np.ptp(ax.get_xlim()) < 4.0, ax.get_xlim()
 
 
+def test_figure_point_panels_span_the_scene_not_its_flying_points():
+    """A few flying points metres behind the scene (stereo and RealSense frames have them) must not
+    shrink the points' 3-D panel to a dot: the panel spans the bulk of the points and its title counts
+    the far ones it leaves out. Clouds and range images alike."""
+    from types import SimpleNamespace
+
+    from sqjax.plot import figure_sequence
+
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform(-1, 1, (2000, 3)) + (0, 0, 5), [[0, 0, 900.0], [400.0, 0, 5], [0, -300.0, 5]]])
+    part = Superquadric.create([0.5, 0.5, 0.5], translation=[0, 0, 5])
+    seg = SimpleNamespace(
+        labels=np.ones(len(pts), np.int32), parts=[SimpleNamespace(superquadric=part)], history=[[part]] * 3
+    )
+    ax = figure_sequence(pts, seg).axes[0]
+    assert max(np.ptp(ax.get_xlim()), np.ptp(ax.get_ylim()), np.ptp(ax.get_zlim())) < 6.0
+    assert "3 far points not drawn" in ax.get_title()
+
+    depth = np.full((40, 50), 2.0)
+    depth[5, 7] = 500.0  # one flying pixel
+    image = RangeImage(depth, PinholeCamera(60.0, 60.0, 25.0, 20.0))
+    part = Superquadric.create([0.5, 0.5, 0.1], translation=[0, 0, 2])
+    seg = SimpleNamespace(
+        labels=np.ones(depth.shape, np.int32), parts=[SimpleNamespace(superquadric=part)], history=[[part]] * 3
+    )
+    ax = figure_sequence(image, seg).axes[2]  # (a) and its colour bar, then (b)
+    assert "(b)" in ax.get_title() and "1 far point not drawn" in ax.get_title()
+    assert np.ptp(ax.get_ylim()) < 5.0  # depth: the plot's y
+
+
 def test_cloud_figure_matches_model_colours_on_a_bounded_sample(monkeypatch):
     """The colours of a cloud's earlier models come from their overlap with the final parts, counted on
     at most `MATCH_POINTS` points: a million-point cloud's figure took 15 s testing every model on every
