@@ -64,8 +64,7 @@ import sqjax
 from machine import machine  # benchmarks/ is on sys.path when run as a script
 from sqjax.evaluate import hoover
 from sqjax.mesh import sample_surface, to_trimesh
-from sqjax.raycast import render
-from sqjax.scenes import OBJECTS, default_camera, multipart_scene
+from sqjax.scenes import OBJECTS, multipart_scene
 
 DATA = Path(os.environ.get("SQJAX_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 MIN_VISIBLE = 30
@@ -318,38 +317,10 @@ def mosd_categories():
     return out
 
 
-def _turn(azimuth, elevation):
-    """Object frame (z up) -> camera frame (x right, y down, z forward), seen from azimuth/elevation."""
-    ca, sa, ce, se = np.cos(azimuth), np.sin(azimuth), np.cos(elevation), np.sin(elevation)
-    rz = np.array([[ca, -sa, 0], [sa, ca, 0], [0, 0, 1]])
-    rx = np.array([[1, 0, 0], [0, ce, -se], [0, se, ce]])
-    return rx @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) @ rz
-
-
-def mesh_scene(path, view, shape=(120, 160), noise=0.005):
-    """A mesh whose connected components are its parts, seen from view 0, 1 or 2 (azimuths 120 degrees
-    apart, 30 degrees above): (range image with one label per component)."""
-    import trimesh
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    mesh = trimesh.load(path, force="mesh")
-    adj = mesh.face_adjacency
-    n = len(mesh.faces)
-    _, comp = connected_components(coo_matrix((np.ones(len(adj)), (adj[:, 0], adj[:, 1])), shape=(n, n)))
-    groups = [np.flatnonzero(comp == c) for c in range(comp.max() + 1)]
-    parts = mesh.submesh([g for g in groups if g.size >= 4], only_watertight=False)
-    centre, radius = mesh.bounding_sphere.primitive.center, mesh.bounding_sphere.primitive.radius
-    camera = default_camera(shape)
-    distance = 5.0
-    scale = 0.4 * shape[0] * distance / camera.fy / radius
-    R = _turn(np.radians(30 + 120 * view), np.radians(30))
-    moved = []
-    for p in parts:
-        q = p.copy()
-        q.vertices = (np.asarray(q.vertices) - centre) * scale @ R.T + (0.0, 0.0, distance)
-        moved.append(q)
-    return render(moved, camera, shape, noise=noise, seed=view)
+def mesh_scene(path, view, shape=(120, 160)):
+    """A mesh whose connected components are its parts, seen from view 0, 1 or 2 (azimuths 30, 150 and
+    270 degrees, 30 degrees above; `sqjax.scenes.mesh_scene`): a range image with one label per part."""
+    return sqjax.scenes.mesh_scene(path, azimuth=30 + 120 * view, elevation=30, shape=shape, seed=view)[0]
 
 
 def main(argv=None):

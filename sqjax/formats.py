@@ -325,6 +325,27 @@ MESH_EXTENSIONS = tuple(e for e, h in _FORMATS.items() if h[0] is _MESH)
 """The extensions that are always meshes, read as their distinct vertices (`read_points`)."""
 
 
+def has_faces(path) -> bool:
+    """Whether a point-set file is a mesh (`read_points` reads its distinct vertices): `.obj` / `.stl`
+    always, a `.ply` whose header declares faces."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in MESH_EXTENSIONS:
+        return True
+    if suffix != ".ply":
+        return False
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536)
+    except OSError:
+        return False
+    for line in head.split(b"end_header")[0].splitlines():
+        words = line.split()
+        if words[:2] == [b"element", b"face"] and len(words) > 2 and words[2].isdigit() and int(words[2]) > 0:
+            return True
+    return False
+
+
 def _handler(path, slot: int, what: str) -> tuple[Path, Any]:
     path, reading = Path(os.fspath(path)), slot < 2
     ext = path.suffix.lower()

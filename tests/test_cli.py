@@ -583,14 +583,57 @@ def test_fit_json_says_the_status_flags(capsys, tmp_path):
 
 def test_a_mesh_with_too_few_vertices_says_how_it_was_read(capsys, tmp_path):
     """A cube's STL is 8 distinct vertices, too few to segment: the error says a mesh is read as its
-    vertices, so that the user knows to sample its surface."""
+    vertices, and names the command that renders a view of it to segment."""
     import trimesh
 
     path = tmp_path / "cube.stl"
     trimesh.creation.box().export(path)
     code, _, err = run(capsys, "segment", path, "--out", tmp_path / "o")
     assert_one_line_error(code, err)
-    assert str(path) in err and "8 valid points" in err and "sample its surface" in err
+    assert str(path) in err and "8 valid points" in err and "distinct vertices" in err
+    assert f"sqjax render {path} --view AZ,EL" in err
+
+
+def test_render_a_mesh_file_labels_its_parts_and_says_how_it_was_placed(capsys, tmp_path):
+    """`sqjax render MESH`: one label per connected component, seen from --view; --json gives each part's
+    visible pixels and the similarity from the mesh's frame to the camera's. A file of points, a missing
+    file and a bad view are one-line errors."""
+    import trimesh
+
+    a, b = trimesh.creation.box((40.0, 30.0, 20.0)), trimesh.creation.box((20.0, 20.0, 50.0))
+    b.apply_translation((60.0, 0.0, 15.0))
+    mesh = trimesh.util.concatenate([a, b])
+    path, out, doc_path = tmp_path / "boxes.stl", tmp_path / "view.npz", tmp_path / "view.json"
+    mesh.export(path)
+    code, stdout, _ = run(
+        capsys, "render", path, "--view", "40,25", "--shape", "48,64", "--out", out, "--json", doc_path
+    )
+    assert code == 0 and "2 parts" in stdout
+    image = read_range_image(out)
+    doc = json.loads(doc_path.read_text())
+    assert set(np.unique(image.labels)) == {0, 1, 2}
+    assert [p["visible_pixels"] for p in doc["parts"]] == [int(np.sum(image.labels == i)) for i in (1, 2)]
+    assert doc["view"] == {"azimuth": 40.0, "elevation": 25.0}
+    T = np.asarray(doc["mesh_to_camera"])
+    centre = T[:3, :3] @ mesh.bounding_sphere.primitive.center + T[:3, 3]
+    assert np.allclose(centre, (0.0, 0.0, 5.0))
+    trimesh.PointCloud(mesh.vertices).export(tmp_path / "points.ply")
+    for argv, words in (
+        ((tmp_path / "points.ply",), "no faces"),
+        ((tmp_path / "missing.stl",), "no such mesh file"),
+        ((path, "--view", "40"), "AZ,EL"),
+        ((path, "--view", "nan,3"), "finite"),
+    ):
+        code, _, err = run(capsys, "render", *argv, "--out", tmp_path / "x.npz")
+        assert code != 0 and words in err, err
+        assert "Traceback" not in err
+    assert not (tmp_path / "x.npz").exists()
+    # `sqjax segment` on a mesh with enough vertices segments them, and its note names the render path
+    from sqjax.cli.segment import mesh_hint
+
+    mesh.export(tmp_path / "boxes.ply")
+    assert f"sqjax render {tmp_path / 'boxes.ply'}" in mesh_hint("point_cloud", tmp_path / "boxes.ply")
+    assert mesh_hint("point_cloud", tmp_path / "points.ply") == ""  # a cloud: nothing to say
 
 
 def test_one_input_stays_on_one_device_and_many_are_split_over_the_cores(

@@ -14,6 +14,7 @@ from sqjax.scenes import (
     OBJECTS,
     PAPER_SCENES,
     default_camera,
+    mesh_scene,
     multipart_scene,
     paper_scene,
     random_scene,
@@ -219,3 +220,51 @@ def test_multipart_objects_show_their_parts(kind):
     for i, sq in enumerate(parts):
         f = np.asarray(inside_outside(sq, pts[lab == i + 1]))
         assert f.size == 0 or np.median(np.abs(f - 1)) < 1e-2
+
+
+def _two_boxes():
+    """A mesh of two disjoint boxes (two connected components), in millimetres."""
+    a = trimesh.creation.box((40.0, 30.0, 20.0))
+    b = trimesh.creation.box((20.0, 20.0, 50.0))
+    b.apply_translation((60.0, 0.0, 15.0))
+    return trimesh.util.concatenate([a, b])
+
+
+def test_mesh_scene_labels_each_connected_component():
+    """A mesh's connected components are its parts: each is seen with its own label, the returned parts
+    are the components moved by the returned similarity, and the depths are the parts' surfaces."""
+    mesh = _two_boxes()
+    image, parts, T = mesh_scene(mesh, azimuth=30, elevation=30, shape=SHAPE, noise=0.0)
+    assert image.shape == SHAPE and len(parts) == 2
+    assert all(np.sum(image.labels == i) >= 100 for i in (1, 2))
+    assert set(np.unique(image.labels)) == {0, 1, 2}
+    moved = mesh.copy()
+    moved.apply_transform(T)
+    assert np.allclose(np.sort(moved.vertices, 0), np.sort(np.concatenate([p.vertices for p in parts]), 0))
+    scale = np.cbrt(np.linalg.det(T[:3, :3]))  # a similarity: a rotation times one scale
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, scale**2 * np.eye(3))
+    assert np.isclose(np.linalg.norm(T[:3, :3] @ mesh.bounding_sphere.primitive.center + T[:3, 3] - (0, 0, 5)), 0)
+    for i, part in enumerate(parts):  # each labelled pixel's point lies on its part's surface
+        pts = image.points[image.labels == i + 1]
+        _, dist, _ = trimesh.proximity.closest_point(part, pts)
+        assert np.max(dist) < 1e-3 * 5.0
+
+
+def test_mesh_scene_views_and_bad_meshes(tmp_path):
+    """Views from other azimuths see the parts from other sides; a file of points (no faces) and a mesh
+    of only tiny components are refused by name."""
+    mesh = _two_boxes()
+    a = mesh_scene(mesh, azimuth=0, elevation=20, shape=SHAPE, noise=0.0)[0]
+    b = mesh_scene(mesh, azimuth=180, elevation=20, shape=SHAPE, noise=0.0)[0]
+    ca, cb = (np.nanmean(np.argwhere(x.labels == 2)[:, 1]) for x in (a, b))
+    assert ca > SHAPE[1] / 2 > cb  # the second box is right of the first from one side, left from the other
+    mesh.export(tmp_path / "boxes.stl")
+    assert np.array_equal(
+        mesh_scene(tmp_path / "boxes.stl", shape=SHAPE, noise=0.0)[0].labels,
+        mesh_scene(mesh, shape=SHAPE, noise=0.0)[0].labels,
+    )
+    trimesh.PointCloud(mesh.vertices).export(tmp_path / "points.ply")
+    with pytest.raises(ValueError, match="no faces"):
+        mesh_scene(tmp_path / "points.ply")
+    with pytest.raises(ValueError, match="4 faces"):
+        mesh_scene(trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))

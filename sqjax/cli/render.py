@@ -1,9 +1,12 @@
-"""`sqjax render SCENE --out FILE`: ray cast a paper scene or a random one into a labelled range image."""
+"""`sqjax render SCENE --out FILE`: ray cast a paper scene, a random one or a mesh file's parts into a
+labelled range image."""
 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
+from typing import Any
 
 from .common import CLIError, depth_scale_arg, noise_arg, shape_arg
 
@@ -14,10 +17,13 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         parents=list(parents),
         help="write a labelled synthetic range image",
         description="Ray cast a synthetic scene: SCENE is one of the paper's scenes "
-        "(sphere_cylinder, two_cylinders, occluded_block) or random:SEED. Writes depth, labels "
-        "and camera (.npz, .pcd) or 16-bit depth only (.png).",
+        "(sphere_cylinder, two_cylinders, occluded_block), random:SEED, or a mesh file (.stl .obj .ply "
+        ".off .glb) whose connected components are its parts, seen from --view (segment the view to find "
+        "its parts). Writes depth, labels and camera (.npz, .pcd) or 16-bit depth only (.png).",
     )
-    r.add_argument("scene", metavar="SCENE", help="sphere_cylinder | two_cylinders | occluded_block | random:SEED")
+    r.add_argument(
+        "scene", metavar="SCENE", help="sphere_cylinder | two_cylinders | occluded_block | random:SEED | MESH_FILE"
+    )
     r.add_argument("--out", required=True, metavar="FILE", help="output .npz, .pcd or .png")
     r.add_argument("--shape", type=shape_arg, default=(120, 160), metavar="H,W", help="image size (default 120,160)")
     r.add_argument(
@@ -25,9 +31,17 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         type=noise_arg,
         default=None,
         metavar="SIGMA",
-        help="depth noise std (default: 0 for paper scenes, 0.005 for random ones)",
+        help="depth noise std (default: 0 for paper scenes, 0.005 for random ones and meshes, which are "
+        "scaled to the scenes' units: 5 in front of the camera)",
     )
-    r.add_argument("--seed", type=int, default=0, help="noise seed of paper scenes (default 0)")
+    r.add_argument("--seed", type=int, default=0, help="noise seed of paper scenes and meshes (default 0)")
+    r.add_argument(
+        "--view",
+        type=view_arg,
+        default=(30.0, 30.0),
+        metavar="AZ,EL",
+        help="a mesh seen from azimuth AZ about its z axis and elevation EL, in degrees (default 30,30)",
+    )
     r.add_argument(
         "--depth-scale",
         type=depth_scale_arg,
@@ -35,13 +49,44 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         metavar="S",
         help=".png only: stored value = depth x S, S = stored units per metre (default 1000: mm)",
     )
-    r.add_argument("--json", metavar="OUT", help="also write the true superquadrics as JSON")
+    r.add_argument(
+        "--json",
+        metavar="OUT",
+        help="also write the true superquadrics as JSON (a mesh: its parts' visible pixels and the similarity "
+        "from the mesh's frame to the camera's)",
+    )
     r.set_defaults(func=run)
     return r
 
 
-def _scene(name: str, shape, noise, seed):
-    from ..scenes import PAPER_SCENES, paper_scene, random_scene
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf")
+
+
+def view_arg(text: str) -> tuple[float, float]:
+    """`AZ,EL` in degrees, finite."""
+    try:
+        az, el = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected AZ,EL in degrees, got {text!r}") from None
+    if not (math.isfinite(az) and math.isfinite(el)):
+        raise argparse.ArgumentTypeError(f"AZ,EL must be finite, got {text!r}")
+    return az, el
+
+
+def _is_mesh(name: str) -> bool:
+    return Path(name).suffix.lower() in MESH_SUFFIXES
+
+
+def _scene(name: str, shape, noise, seed, view=(30.0, 30.0)) -> tuple[Any, list[Any], Any]:
+    """(range image, its true parts: superquadrics or meshes, the mesh-to-camera similarity or None)."""
+    from ..scenes import PAPER_SCENES, mesh_scene, paper_scene, random_scene
+
+    if _is_mesh(name):
+        if not Path(name).is_file():
+            raise CLIError(f"{name}: no such mesh file")
+        kw = {} if noise is None else {"noise": noise}
+        image, parts, T = mesh_scene(name, azimuth=view[0], elevation=view[1], shape=shape, seed=seed, **kw)
+        return image, parts, T
 
     if name.startswith("random:") or name == "random":
         try:
@@ -49,10 +94,13 @@ def _scene(name: str, shape, noise, seed):
         except ValueError:
             raise CLIError(f"bad scene {name!r}: expected random:SEED with an integer SEED") from None
         kw = {} if noise is None else {"noise": noise}
-        return random_scene(s, shape=shape, **kw)
+        return (*random_scene(s, shape=shape, **kw), None)
     if name not in PAPER_SCENES:
-        raise CLIError(f"unknown scene {name!r}: expected one of {', '.join(PAPER_SCENES)} or random:SEED")
-    return paper_scene(name, shape=shape, noise=0.0 if noise is None else noise, seed=seed)
+        raise CLIError(
+            f"unknown scene {name!r}: expected one of {', '.join(PAPER_SCENES)}, random:SEED or a mesh file "
+            f"({' '.join(MESH_SUFFIXES)})"
+        )
+    return (*paper_scene(name, shape=shape, noise=0.0 if noise is None else noise, seed=seed), None)
 
 
 def run(args) -> int:
@@ -72,7 +120,7 @@ def run(args) -> int:
     for target in (out, json_path):  # both writable, or neither is written (before the ray casting)
         if target is not None:
             check_writable_file(target)
-    image, truth = _scene(args.scene, args.shape, args.noise, args.seed)
+    image, truth, to_camera = _scene(args.scene, args.shape, args.noise, args.seed, args.view)
     doc = None
     if json_path is not None:
         doc = {
@@ -80,8 +128,19 @@ def run(args) -> int:
             "scene": args.scene,
             "image_size": list(image.shape),
             "camera": image.camera.to_dict(),
-            "parts": [{"label": i + 1, **superquadric_dict(sq)} for i, sq in enumerate(truth)],
         }
+        if to_camera is None:
+            doc["parts"] = [{"label": i + 1, **superquadric_dict(sq)} for i, sq in enumerate(truth)]
+        else:
+            import numpy as np
+
+            labels = np.asarray(image.labels)
+            doc["view"] = {"azimuth": args.view[0], "elevation": args.view[1]}
+            doc["mesh_to_camera"] = to_camera.tolist()
+            doc["parts"] = [
+                {"label": i + 1, "faces": len(p.faces), "visible_pixels": int(np.sum(labels == i + 1))}
+                for i, p in enumerate(truth)
+            ]
     with atomic_paths(*(p for p in (json_path,) if p is not None)) as tmps:
         if tmps:
             tmps[0].write_text(dumps(doc) + "\n")
@@ -95,5 +154,5 @@ def run(args) -> int:
         )
     print(msg)
     if json_path is not None:
-        print(f"wrote {json_path}: true parameters")
+        print(f"wrote {json_path}: " + ("true parameters" if to_camera is None else "the parts and the view"))
     return 0

@@ -185,11 +185,14 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         try:
             seg = segment(data, options=options, progress=progress)
         except ValueError as e:  # e.g. too few valid points: say which input
-            from ..formats import MESH_EXTENSIONS
+            from ..formats import has_faces
 
             msg = one_line(e)
-            if kind == "point_cloud" and Path(input_path or "").suffix.lower() in MESH_EXTENSIONS and "points" in msg:
-                msg += " (a mesh is read as its distinct vertices: sample its surface for more points)"
+            if kind == "point_cloud" and input_path and has_faces(input_path) and "points" in msg:
+                msg += (
+                    " (a mesh is read as its distinct vertices; to find its parts, segment a view of it:"
+                    f" sqjax render {input_path} --view AZ,EL --out view.npz)"
+                )
             raise CLIError(f"{input_path}: {msg}" if input_path else msg) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
         written = write_segmentation(
@@ -207,11 +210,23 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         )
         if seg.parts:
             print(_parts_table(seg))
-        hint = noise_free_hint(seg)
-        if hint:
-            print(hint)
+        for hint in (noise_free_hint(seg), mesh_hint(kind, input_path)):
+            if hint:
+                print(hint)
         print(f"wrote {out}{os.sep}: {' '.join(written)}")
     return seg, written
+
+
+def mesh_hint(kind, input_path) -> str:
+    """A note for a mesh file read as a cloud: its vertices were segmented; views of it find its parts."""
+    from ..formats import has_faces
+
+    if kind != "point_cloud" or not input_path or not has_faces(input_path):
+        return ""
+    return (
+        "sqjax: note: a mesh is segmented as its vertices, which sample its surface unevenly; to find its parts "
+        f"segment views of it: sqjax render {input_path} --view AZ,EL --out view.npz"
+    )
 
 
 def noise_free_hint(seg) -> str:
