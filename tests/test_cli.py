@@ -623,6 +623,7 @@ def test_render_a_mesh_file_labels_its_parts_and_says_how_it_was_placed(capsys, 
         ((tmp_path / "missing.stl",), "no such mesh file"),
         ((path, "--view", "40"), "AZ,EL"),
         ((path, "--view", "nan,3"), "finite"),
+        (("random:1", "--view", "30,30"), "not a mesh file"),
     ):
         code, _, err = run(capsys, "render", *argv, "--out", tmp_path / "x.npz")
         assert code != 0 and words in err, err

@@ -38,7 +38,7 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
     r.add_argument(
         "--view",
         type=view_arg,
-        default=(30.0, 30.0),
+        default=None,
         metavar="AZ,EL",
         help="a mesh seen from azimuth AZ about its z axis and elevation EL, in degrees (default 30,30)",
     )
@@ -77,7 +77,7 @@ def _is_mesh(name: str) -> bool:
     return Path(name).suffix.lower() in MESH_SUFFIXES
 
 
-def _scene(name: str, shape, noise, seed, view=(30.0, 30.0)) -> tuple[Any, list[Any], Any]:
+def _scene(name: str, shape, noise, seed, view=None) -> tuple[Any, list[Any], Any]:
     """(range image, its true parts: superquadrics or meshes, the mesh-to-camera similarity or None)."""
     from ..scenes import PAPER_SCENES, mesh_scene, paper_scene, random_scene
 
@@ -85,8 +85,10 @@ def _scene(name: str, shape, noise, seed, view=(30.0, 30.0)) -> tuple[Any, list[
         if not Path(name).is_file():
             raise CLIError(f"{name}: no such mesh file")
         kw = {} if noise is None else {"noise": noise}
-        image, parts, T = mesh_scene(name, azimuth=view[0], elevation=view[1], shape=shape, seed=seed, **kw)
-        return image, parts, T
+        az, el = view or (30.0, 30.0)
+        return mesh_scene(name, azimuth=az, elevation=el, shape=shape, seed=seed, **kw)
+    if view is not None:
+        raise CLIError(f"--view places a mesh file's camera; {name!r} is not a mesh file")
 
     if name.startswith("random:") or name == "random":
         try:
@@ -135,7 +137,8 @@ def run(args) -> int:
             import numpy as np
 
             labels = np.asarray(image.labels)
-            doc["view"] = {"azimuth": args.view[0], "elevation": args.view[1]}
+            az, el = args.view or (30.0, 30.0)
+            doc["view"] = {"azimuth": az, "elevation": el}
             doc["mesh_to_camera"] = to_camera.tolist()
             doc["parts"] = [
                 {"label": i + 1, "faces": len(p.faces), "visible_pixels": int(np.sum(labels == i + 1))}
