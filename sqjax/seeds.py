@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from .domain import Domain, knn, noise_exponent, pixel_map, plane_residual
+from .domain import Domain, knn, pixel_map
 from .hypotheses import Models, pairs, split_by_model
 from .initial import one_view_starts
 from .workspace import Workspace
@@ -137,8 +137,8 @@ def seed(ws: Workspace, seeds: list | None = None) -> tuple[Models, Workspace]:
     at least `seed_inlier_fraction` of the window within tau of its fit (the paper's statistical test).
 
     The first call (all seeds) may raise the noise to the typical seed-fit residual
-    (`SensorOptions.adaptive_noise`) and estimate the noise's growth with depth
-    (`SensorOptions.noise_exponent` None); it returns the workspace in that noise."""
+    (`SensorOptions.adaptive_noise`; in units of the local noise where it grows with depth); it returns
+    the workspace in that noise."""
     opts = ws.opts
     first = seeds is None
     seeds = [np.sort(ids) for ids in (ws.dom.seeds if first else seeds)]
@@ -153,15 +153,6 @@ def seed(ws: Workspace, seeds: list | None = None) -> tuple[Models, Workspace]:
         sigma = np.array([np.median(d[i]) / 0.6745 for i in fitted])
         if fitted.size:
             noise = ws.noise
-            if ws.dom.is_image and sensor.noise_exponent is None and ws.scale is None:
-                # images: how the seeds' residuals grow with depth gives the sensor's noise model; the
-                # residual of each window's plane (the least principal axis; the model's eq. 10
-                # residual has a floor of its own fitting error)
-                depth = np.array([np.median(np.abs(ws.dom.points[seeds[i], 2])) for i in fitted])
-                k = noise_exponent(depth, np.array([plane_residual(ws.dom.points[seeds[i]]) for i in fitted]))
-                if k > 0:
-                    noise = dataclasses.replace(noise, exponent=k, z_ref=float(np.median(np.abs(ws.dom.points[:, 2]))))
-                    sigma = sigma / (depth / noise.z_ref) ** k
             level = max(noise.sigma, float(np.median(sigma)))
             ws = ws.with_noise(dataclasses.replace(noise, sigma=level, tau=sensor.threshold_factor * level))
             model, point = pairs(seeds)

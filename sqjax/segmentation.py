@@ -14,7 +14,16 @@ import os
 import numpy as np
 
 from .chart import NUM_PARAMS, to_world
-from .domain import Domain, cloud_domain, cloud_noise, estimate_noise, free_components, image_domain, knn
+from .domain import (
+    Domain,
+    cloud_domain,
+    cloud_noise,
+    depth_noise_exponent,
+    estimate_noise,
+    free_components,
+    image_domain,
+    knn,
+)
 from .growth import grow
 from .hypotheses import Models
 from .labelling import Part, label_cloud, label_full, label_image, parts
@@ -189,10 +198,9 @@ def _prepare(data, opts: SegmentOptions, k: int, cloud_sigma: float | None = Non
         windows, seed_size = image_seeds(dom, window, stride, seeds.min_seed_points, seeds.subdivide)
         dom = dataclasses.replace(dom, seeds=windows, seed_size=seed_size)
         noise = Noise(sigma, sensor.threshold if sensor.threshold is not None else sensor.threshold_factor * sigma)
-        if sensor.noise_exponent:  # else the seeds estimate it (`seeds.seed`), or it is 0
-            noise = dataclasses.replace(
-                noise, exponent=sensor.noise_exponent, z_ref=float(np.median(np.abs(dom.points[:, 2])))
-            )
+        exponent = depth_noise_exponent(data) if sensor.noise_exponent is None else sensor.noise_exponent
+        if exponent:
+            noise = dataclasses.replace(noise, exponent=exponent, z_ref=float(np.median(np.abs(dom.points[:, 2]))))
         return dom, noise
     pts = _cloud(data)
     rows = np.flatnonzero(np.isfinite(pts).all(1))

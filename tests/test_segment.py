@@ -556,18 +556,22 @@ def test_a_full_size_frame_keeps_the_labels_its_working_image_carried():
     assert covered >= (seg_work.labels > 0)[work.valid].mean() - 0.05
 
 
-def test_noise_exponent_from_residuals_at_several_depths():
-    """The Theil-Sen slope of log residual against log depth recovers sigma ~ z^k (k = 2 and 0), and
-    is robust to a few seeds whose residual is a modelling error."""
-    from sqjax.domain import noise_exponent
+def test_noise_exponent_from_the_depth_at_several_depths():
+    """The depth's second differences binned by depth recover sigma ~ z^k (k = 2 and 0) on a sloped,
+    curved surface spanning depths 2-6 with the edges of a few steps in it; a surface at one depth has
+    no slope to read."""
+    from sqjax.domain import depth_noise_exponent
 
+    H, W = 120, 160
+    v, u = np.mgrid[0:H, 0:W]
+    surface = 2.0 + 4.0 * v / (H - 1) + 0.3 * np.sin(u / 9.0) + 0.5 * (u > 100)  # a slope, waves, a step
+    cam = PinholeCamera(W, W, (W - 1) / 2, (H - 1) / 2)
     rng = np.random.default_rng(0)
-    z = rng.uniform(0.6, 1.6, 300)
     for k in (2.0, 0.0):
-        sigma = 1.4e-3 * z**k * rng.lognormal(0, 0.2, z.size)
-        sigma[:20] *= 30.0  # seeds straddling an edge
-        assert abs(noise_exponent(z, sigma) - k) <= 0.2 * max(k, 1.0)
-    assert noise_exponent(np.full(50, 1.0), np.full(50, 1e-3)) == 0.0  # one depth: no slope
+        depth = surface + 1.4e-3 * surface**k * rng.standard_normal((H, W))
+        assert abs(depth_noise_exponent(RangeImage(depth, cam)) - k) <= 0.2 * max(k, 1.0)
+    flat = RangeImage(5.0 + 1e-3 * rng.standard_normal((H, W)), cam)
+    assert depth_noise_exponent(flat) == 0.0
 
 
 def test_cloud_noise_is_the_residual_at_the_scale_of_a_part():
@@ -599,7 +603,7 @@ def test_cloud_noise_is_the_residual_at_the_scale_of_a_part():
 
 def test_segmentation_recovers_a_z_squared_noise_model():
     """Six fronto-parallel walls side by side at depths 2 to 8 with Kinect-like noise sigma = 1.4e-3 z^2:
-    estimated from the seeds (noise_exponent=None), k is within 20% of 2."""
+    estimated from the image (noise_exponent=None), k is within 20% of 2."""
     H, W = 90, 120
     band = np.arange(W) * 6 // W
     z = np.geomspace(2.0, 8.0, 6)[band]
