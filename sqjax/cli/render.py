@@ -32,7 +32,8 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         default=None,
         metavar="SIGMA",
         help="depth noise std (default: 0 for paper scenes, 0.005 for random ones and meshes, which are "
-        "scaled to the scenes' units: 5 in front of the camera)",
+        "scaled to the scenes' units: 5 in front of the camera; a mesh seen without noise segments worse, "
+        "since the tolerance is estimated from the data)",
     )
     r.add_argument("--seed", type=int, default=0, help="noise seed of paper scenes and meshes (default 0)")
     r.add_argument(
