@@ -378,6 +378,18 @@ def mesh_parts(mesh) -> list:
     return list(parts) if isinstance(parts, list) else [parts]
 
 
+def _bounding_sphere(mesh) -> tuple[np.ndarray, float]:
+    """(centre, radius) of trimesh's minimum bounding sphere; for a flat mesh, whose convex hull trimesh
+    cannot orient without networkx, the sphere about its vertices' box centre."""
+    try:
+        sphere = mesh.bounding_sphere.primitive
+        return np.asarray(sphere.center, float), float(sphere.radius)
+    except Exception:  # trimesh raises many kinds on degenerate hulls
+        v = np.asarray(mesh.vertices, float)
+        centre = 0.5 * (v.min(0) + v.max(0))
+        return centre, float(np.max(np.linalg.norm(v - centre, axis=1)))
+
+
 def mesh_scene(
     mesh, *, azimuth: float = 30.0, elevation: float = 30.0, shape=(120, 160), noise: float = 0.005, seed: int = 0
 ):
@@ -396,8 +408,7 @@ def mesh_scene(
     sample its surface unevenly."""
     mesh = _mesh(mesh)
     parts = mesh_parts(mesh)
-    sphere = mesh.bounding_sphere.primitive
-    centre, radius = np.asarray(sphere.center, float), float(sphere.radius)
+    centre, radius = _bounding_sphere(mesh)
     camera = default_camera(shape)
     distance = 5.0
     scale = 0.4 * shape[0] * distance / camera.fy / radius

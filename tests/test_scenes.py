@@ -266,5 +266,12 @@ def test_mesh_scene_views_and_bad_meshes(tmp_path):
     trimesh.PointCloud(mesh.vertices).export(tmp_path / "points.ply")
     with pytest.raises(ValueError, match="no faces"):
         mesh_scene(tmp_path / "points.ply")
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]]).subdivide()
+    image, parts, T = mesh_scene(flat, elevation=90, shape=SHAPE, noise=0.0)  # a flat mesh has a sphere too
+    assert (
+        len(parts) == 1
+        and image.valid.sum() > 100
+        and np.isclose(np.cbrt(np.linalg.det(T[:3, :3])), 5 * 0.4 * SHAPE[0] / SHAPE[1] / np.sqrt(0.5))
+    )
     with pytest.raises(ValueError, match="4 faces"):
         mesh_scene(trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
