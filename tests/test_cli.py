@@ -617,6 +617,9 @@ def test_render_a_mesh_file_labels_its_parts_and_says_how_it_was_placed(capsys, 
     T = np.asarray(doc["mesh_to_camera"])
     centre = T[:3, :3] @ mesh.bounding_sphere.primitive.center + T[:3, 3]
     assert np.allclose(centre, (0.0, 0.0, 5.0))
+    a.export(tmp_path / "one.stl")
+    code, stdout, _ = run(capsys, "render", tmp_path / "one.stl", "--shape", "48,64", "--out", tmp_path / "one.npz")
+    assert code == 0 and stdout.rstrip().endswith("1 part")
     trimesh.PointCloud(mesh.vertices).export(tmp_path / "points.ply")
     for argv, words in (
         ((tmp_path / "points.ply",), "no faces"),

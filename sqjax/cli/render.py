@@ -149,7 +149,10 @@ def run(args) -> int:
         if tmps:
             tmps[0].write_text(dumps(doc) + "\n")
         write_range_image(out, image, depth_scale=args.depth_scale)  # atomic itself; the JSON follows it
-    msg = f"wrote {out}: {image.shape[0]}x{image.shape[1]} range image of {args.scene!r}, {len(truth)} parts"
+    n = len(truth)
+    msg = (
+        f"wrote {out}: {image.shape[0]}x{image.shape[1]} range image of {args.scene!r}, {n} part{'s' if n != 1 else ''}"
+    )
     if out.suffix.lower() == ".png":
         msg += (
             f" (16-bit depth x {args.depth_scale:g}; no labels or camera: read with --camera "
