@@ -195,6 +195,25 @@ def test_render_without_embree_matches(monkeypatch):
     np.testing.assert_allclose(fast.depth[same], slow.depth[same], atol=1e-5)
 
 
+def test_every_platform_installs_a_ray_caster():
+    """embreex has wheels for x86_64 only; elsewhere the numpy caster above needs rtree. Both are core
+    dependencies, each where the other is not, or `sqjax demo` fails on an ARM machine."""
+    import tomllib
+    from pathlib import Path
+
+    from packaging.markers import Marker
+    from packaging.requirements import Requirement
+
+    deps = [
+        Requirement(d)
+        for d in tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]["dependencies"]
+    ]
+    for machine in ("x86_64", "aarch64", "arm64"):
+        env = {"platform_machine": machine}
+        installed = {r.name for r in deps if r.marker is None or Marker(str(r.marker)).evaluate(env)}
+        assert {"embreex", "rtree"} & installed, machine
+
+
 def test_render_non_convex_part():
     """A star-like superquadric (exponents > 1): hits still lie on its surface or, unbracketed, on its mesh."""
     star = Superquadric.create((0.8, 0.8, 0.8), (1.8, 1.8), euler=(0.3, 0.4, 0.0), translation=(0.0, 0.0, 5.0))
