@@ -147,6 +147,16 @@ def cloud_domain(points: np.ndarray, rows: np.ndarray, n_rows: int, nb: np.ndarr
     return Domain(P, nb, rows, (n_rows,))
 
 
+def _second_differences(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The finite second differences z(u-1) - 2 z(u) + z(u+1) of a depth image z (H, W) along its rows
+    and columns, and the depth z(u) at each: two (n,) arrays. On a smooth surface their std is sqrt(6)
+    times the noise's."""
+    d = np.concatenate([(z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel(), (z[:-2] - 2 * z[1:-1] + z[2:]).ravel()])
+    c = np.concatenate([z[:, 1:-1].ravel(), z[1:-1].ravel()])
+    ok = np.isfinite(d)
+    return d[ok], c[ok]
+
+
 def estimate_noise(image: RangeImage) -> float:
     """Robust depth-noise std from second differences of the depth along rows and columns.
 
@@ -154,8 +164,7 @@ def estimate_noise(image: RangeImage) -> float:
     (/0.6745) ignores edges. Floored at 1e-4 of the median depth.
     """
     z = image.depth.astype(np.float64)
-    d = np.concatenate([(z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel(), (z[:-2] - 2 * z[1:-1] + z[2:]).ravel()])
-    d = d[np.isfinite(d)]
+    d, _ = _second_differences(z)
     if d.size == 0:
         return float(1e-3 * np.nanmedian(np.abs(z))) if np.isfinite(z).any() else 1.0
     sigma = np.median(np.abs(d)) / 0.6745 / np.sqrt(6.0)
@@ -223,16 +232,14 @@ def depth_noise_exponent(image: RangeImage, bins: int = 6) -> float:
     quantiles of their pixel's depth; the median absolute value in each is the noise there (robust to
     the edges a bin holds), and k is the least-squares slope of its log against log depth, clipped to
     [0, 2]. Depths spanning less than 20%, or fewer than 8 differences per bin, give 0. Second
-    differences cancel a surface's slope and nearly all its curvature at the pixel scale, so
-    constant-noise synthetic scenes read 0.1-0.4 and the mOSD frames (Kinect) 1.8-2.4 at their
-    working step (benchmarks/RESULTS.md, 2026-12-06 late night; the seed windows' plane residuals,
-    used before, read up to 1.7 on constant noise: a window's residual holds its surface's curvature).
+    differences cancel a surface's slope and most of its curvature at the pixel scale: the 59 mOSD
+    frames (Kinect) read 1.2-2.0 at their working step (median 2.0, 10th percentile 1.7), the 50
+    constant-noise synthetic scenes 0-1.4 (median 0.36, 90th percentile 0.68) (benchmarks/RESULTS.md,
+    2026-12-06 late night; the seed windows' plane residuals, used before, read 0.6-1.0 on mOSD and up
+    to 1.7 on constant noise: a window's residual holds its surface's curvature).
     Quantised depth limits it: where most differences are 0 or one depth unit, the medians are too."""
-    z = image.depth.astype(np.float64)
-    d = np.concatenate([(z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel(), (z[:-2] - 2 * z[1:-1] + z[2:]).ravel()])
-    c = np.concatenate([z[:, 1:-1].ravel(), z[1:-1].ravel()])
-    ok = np.isfinite(d)
-    d, c = np.abs(d[ok]), np.abs(c[ok])
+    d, c = _second_differences(image.depth.astype(np.float64))
+    d, c = np.abs(d), np.abs(c)
     if c.size < 8 * bins:
         return 0.0
     groups = np.array_split(np.argsort(c), bins)

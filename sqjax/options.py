@@ -63,8 +63,8 @@ class SensorOptions:
     - `noise_exponent`: range images: the depth noise is sigma(z) = noise (z / z_median)^k and every
       distance is compared in units of the local sigma (2 for structured light, Khoshelham & Elberink
       2012); None = k estimated from the image, from how its depth's second differences grow with the
-      depth (`domain.depth_noise_exponent`: 1.8-2.4 on mOSD frames, 0.1-0.4 on constant-noise
-      synthetic scenes); 0 (default) = one noise for the whole image. Measured over the benchmark
+      depth (`domain.depth_noise_exponent`: median 2.0 on the mOSD frames, 0.36 on
+      constant-noise synthetic scenes); 0 (default) = one noise for the whole image. Measured over the benchmark
       (benchmarks/RESULTS.md): k = 2 lowers the mOSD score (91.9% -> 89.1%; a z^2 sensor term under
       a depth-independent floor for the surfaces' departure from superquadrics: 86.7%; 2026-12-06 late
       night): near objects lose tolerance and split, so the default stays one noise per image.

@@ -181,6 +181,11 @@ def _bulk(pts: np.ndarray) -> np.ndarray:
     return ok & np.asarray(((pts >= lo - span) & (pts <= hi + span)).all(-1))
 
 
+def _far_note(far: int) -> str:
+    """A panel title's note of the points `_bulk` leaves out."""
+    return f"\n{far} far point{'s' if far != 1 else ''} not drawn" if far else ""
+
+
 def _scatter(ax, pts, c, *, cmap=None, max_points=6000, size=1.0, keep=None):
     """Scatter at most `max_points` of the finite points (P, 3) (of those in `keep` (P,) bool, if given),
     evenly strided; returns them in the plot frame."""
@@ -300,11 +305,7 @@ def figure_sequence(
         _equal_3d(ax, shown)
         _style_3d(ax)
         far = int(image.valid.sum() - bulk.sum())
-        ax.set_title(
-            "(b) points (x, y, z)"
-            + (", in colour" if image.colors is not None else "")
-            + (f"\n{far} far point{'s' if far != 1 else ''} not drawn" if far else "")
-        )
+        ax.set_title("(b) points (x, y, z)" + (", in colour" if image.colors is not None else "") + _far_note(far))
         final_labels = np.asarray(segmentation.labels)
         # the models are ray cast no finer than a panel's pixels (a third of the figure's width)
         step = max(1, int(np.ceil(max(H, W) / (fig.get_figwidth() * dpi / 3))))
@@ -337,9 +338,7 @@ def figure_sequence(
         _equal_3d(ax, shown)
         _style_3d(ax)
         far = int(np.isfinite(pts).all(-1).sum() - bulk.sum())
-        ax.set_title(
-            "(a) points, coloured by depth" + (f"\n{far} far point{'s' if far != 1 else ''} not drawn" if far else "")
-        )
+        ax.set_title("(a) points, coloured by depth" + _far_note(far))
         final_labels = np.asarray(segmentation.labels)
         for k, (name, models) in enumerate(panels):
             ax = fig.add_subplot(spec[(1 + k) // 3, (1 + k) % 3], projection="3d")

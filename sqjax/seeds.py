@@ -152,9 +152,8 @@ def seed(ws: Workspace, seeds: list | None = None) -> tuple[Models, Workspace]:
         fitted = np.flatnonzero(np.isfinite(score))
         sigma = np.array([np.median(d[i]) / 0.6745 for i in fitted])
         if fitted.size:
-            noise = ws.noise
-            level = max(noise.sigma, float(np.median(sigma)))
-            ws = ws.with_noise(dataclasses.replace(noise, sigma=level, tau=sensor.threshold_factor * level))
+            level = max(ws.noise.sigma, float(np.median(sigma)))
+            ws = ws.with_noise(dataclasses.replace(ws.noise, sigma=level, tau=sensor.threshold_factor * level))
             model, point = pairs(seeds)
             d = split_by_model(ws.distances(theta, model, point, within=ws.tau)[0], model, len(seeds))
     regions = np.zeros((len(seeds), ws.P), bool)

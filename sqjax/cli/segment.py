@@ -185,14 +185,10 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         try:
             seg = segment(data, options=options, progress=progress)
         except ValueError as e:  # e.g. too few valid points: say which input
-            from ..formats import has_faces
-
             msg = one_line(e)
-            if kind == "point_cloud" and input_path and has_faces(input_path) and "points" in msg:
-                msg += (
-                    " (a mesh is read as its distinct vertices; to find its parts, segment a view of it:"
-                    f" sqjax render {input_path} --view AZ,EL --out view.npz)"
-                )
+            advice = _mesh_advice(kind, input_path)
+            if advice and "points" in msg:
+                msg += f" (a mesh is read as its distinct vertices; {advice})"
             raise CLIError(f"{input_path}: {msg}" if input_path else msg) from None
         progress.phase("writing models, labels, meshes" + (" and the figure" if figure else ""))
         written = write_segmentation(
@@ -217,15 +213,22 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
     return seg, written
 
 
-def mesh_hint(kind, input_path) -> str:
-    """A note for a mesh file read as a cloud: its vertices were segmented; views of it find its parts."""
+def _mesh_advice(kind, input_path) -> str:
+    """For a mesh file read as a cloud: how to find its parts (`sqjax render`); '' for anything else."""
     from ..formats import has_faces
 
     if kind != "point_cloud" or not input_path or not has_faces(input_path):
         return ""
+    return f"to find its parts, segment a view of it: sqjax render {input_path} --view AZ,EL --out view.npz"
+
+
+def mesh_hint(kind, input_path) -> str:
+    """A note for a mesh file read as a cloud: its vertices were segmented; views of it find its parts."""
+    advice = _mesh_advice(kind, input_path)
     return (
-        "sqjax: note: a mesh is segmented as its vertices, which sample its surface unevenly; to find its parts "
-        f"segment views of it: sqjax render {input_path} --view AZ,EL --out view.npz"
+        f"sqjax: note: a mesh is segmented as its vertices, which sample its surface unevenly; {advice}"
+        if advice
+        else ""
     )
 
 
