@@ -95,24 +95,9 @@ def image_domain(image: RangeImage, jump_factor: float, noise: float) -> Domain:
     depth discontinuity (more than `jump_factor` times the typical step plus 6 `noise`)."""
     H, W = image.shape
     valid = image.valid
-    pts = image.points
     flat = np.flatnonzero(valid)
-    idmap = pixel_map(flat, (H, W))
-    P = pts.reshape(-1, 3)[flat]
-    rr, cc = np.divmod(flat, W)
-    nb = -np.ones((flat.size, 8), np.int64)
-    steps = np.full((flat.size, 8), np.inf)
-    for k, (dr, dc) in enumerate(OFFSETS):
-        r2, c2 = rr + dr, cc + dc
-        ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
-        j = np.where(ok, idmap[np.clip(r2, 0, H - 1), np.clip(c2, 0, W - 1)], -1)
-        nb[:, k] = j
-        good = j >= 0
-        steps[good, k] = np.linalg.norm(P[good] - P[j[good]], axis=1) / np.hypot(dr, dc)
-    typical = np.median(steps[np.isfinite(steps)]) if np.isfinite(steps).any() else 1.0
-    jump = steps > jump_factor * typical + 6.0 * noise
-    cut = (nb >= 0) & jump
-    nb[cut] = -1
+    P = image.points.reshape(-1, 3)[flat]
+    nb, cut = image_adjacency(flat, P, (H, W), jump_factor, noise)
     edges = np.zeros((len(OFFSETS), H * W), bool)
     edges[:, flat] = (nb >= 0).T
     void = None
@@ -129,6 +114,29 @@ def image_domain(image: RangeImage, jump_factor: float, noise: float) -> Domain:
         void_rays=void,
         broken=np.asarray(cut.any(1)),
     )
+
+
+def image_adjacency(flat: np.ndarray, P: np.ndarray, shape, jump_factor: float, noise: float):
+    """The 8-adjacency of an (H, W) `shape` image's valid pixels `flat` (flat indices, ascending) with
+    their points P (len(flat), 3): nb (P, 8) the neighbour at each of `OFFSETS` (-1: none, or cut) and
+    cut (P, 8) where a depth discontinuity cut it (a 3-D step more than `jump_factor` times the typical
+    step plus 6 `noise`)."""
+    H, W = shape
+    idmap = pixel_map(flat, (H, W))
+    rr, cc = np.divmod(flat, W)
+    nb = -np.ones((flat.size, 8), np.int64)
+    steps = np.full((flat.size, 8), np.inf)
+    for k, (dr, dc) in enumerate(OFFSETS):
+        r2, c2 = rr + dr, cc + dc
+        ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
+        j = np.where(ok, idmap[np.clip(r2, 0, H - 1), np.clip(c2, 0, W - 1)], -1)
+        nb[:, k] = j
+        good = j >= 0
+        steps[good, k] = np.linalg.norm(P[good] - P[j[good]], axis=1) / np.hypot(dr, dc)
+    typical = np.median(steps[np.isfinite(steps)]) if np.isfinite(steps).any() else 1.0
+    cut = (nb >= 0) & (steps > jump_factor * typical + 6.0 * noise)
+    nb[cut] = -1
+    return nb, cut
 
 
 def pixel_map(flat: np.ndarray, shape) -> np.ndarray:

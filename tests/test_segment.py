@@ -538,13 +538,35 @@ def test_large_images_are_segmented_at_a_working_resolution_and_labelled_in_full
         assert part.num_points == np.sum(seg.labels == i + 1) > 0
 
 
+def test_full_size_pixels_between_the_working_rows_are_labelled_along_the_surface():
+    """A 480 x 640 plane (segmented at step 4) whose rows between the working rows lie 5 noise nearer
+    the camera, as a Kinect's depth bands do: no model explains them (tau is 3 noise) and their working
+    pixels are explained, so they were left unlabelled (44% of the pixels). The full-size surface
+    joins them to the labelled rows (a step of 5 noise is no depth discontinuity): every valid pixel
+    gets the plane's label. A second plane behind a depth jump keeps its own."""
+    from sqjax.scenes import default_camera
+
+    H, W = 480, 640
+    sigma = 0.002
+    r = np.mgrid[:H, :W][0]
+    depth = 5.0 + 0.001 * r - 5 * sigma * (r % 4 != 0) + np.random.default_rng(0).normal(0, sigma, (H, W))
+    depth[:, W // 2 :] += 1.0  # the right half: another surface, a metre behind
+    image = RangeImage(depth, default_camera((H, W)))
+    seg = segment(image, noise=sigma)
+    assert seg.stats["subsample"] == 4 and len(seg.parts) == 2
+    left, right = seg.labels[:, : W // 2 - 8], seg.labels[:, W // 2 + 8 :]  # beyond two working pixels of the jump
+    assert np.all(left == left[0, 0]) and np.all(right == right[0, 0]) and left[0, 0] != right[0, 0] > 0
+
+
 def test_a_full_size_frame_keeps_the_labels_its_working_image_carried():
     """mOSD learn33 at 640 x 480 (segmented at 160 x 120): a working pixel labelled by propagation or out
     of its model's reach by the free-space test still lends its label to the full-size pixels around it
     that no model explains (they were left unlabelled: a tenth of the table, a third of one object,
-    and one object fewer correct than at 160 x 120). The full-size labels cover the surface the working
-    labels cover (but for full-size pixels that no model explains and whose working pixel its own model
-    explains: 3% of the valid pixels here; 7% unlabelled before), and score as they do on the working grid."""
+    and one object fewer correct than at 160 x 120); and the full-size pixels that no model explains
+    but whose working pixel its own model explains are joined along the full-size surface
+    (`_fill_footprint`: 3% of the valid pixels here, the Kinect's depth bands striping the table). The
+    full-size labels cover at least the surface the working labels cover, and score as they do on the
+    working grid."""
     image = sqjax.read_range_image(data_path("mosd", "learn", "learn33.pcd"))
     work = image.subsample(4)
     seg_full, seg_work = segment(image), segment(work)
@@ -553,7 +575,7 @@ def test_a_full_size_frame_keeps_the_labels_its_working_image_carried():
     on_grid = seg_full.labels[::4, ::4]
     assert hoover(truth, on_grid).correct == hoover(truth, seg_work.labels).correct
     covered = (seg_full.labels > 0)[image.valid].mean()
-    assert covered >= (seg_work.labels > 0)[work.valid].mean() - 0.05
+    assert covered >= (seg_work.labels > 0)[work.valid].mean()
 
 
 def test_noise_exponent_from_the_depth_at_several_depths():
