@@ -275,8 +275,10 @@ class ExtraOptions:
       superquadric does not follow (the rounded rim of a box, the curved side of a bowl, mixed pixels
       at edges). Measured over every suite (benchmarks/RESULTS.md, 2026-12-02): mOSD 76.5% -> 82.1%
       correct (objects 70.4% -> 77.4%, noise regions 21.5% -> 15.3%, table 100% both), meshes 40.3%
-      -> 42.9%, multi-part objects (85.3%) and synthetic scenes (97.7%) unchanged. False = label only
-      the pixels a model explains (the paper).
+      -> 42.9%, multi-part objects (85.3%) and synthetic scenes (97.7%) unchanged. A frame segmented
+      at a working step is labelled at its own size the same way (`labelling.label_full`: along the
+      full-size surface, under the labelled working pixels). False = label only the pixels a model
+      explains (the paper).
     - `part_volumes`: each final model is refitted to its part's points with the fitter's size bound,
       from several starts, and the part keeps the candidate that best agrees with the observations
       (the part's points it explains, less the observed points and empty pixels whose viewing rays
