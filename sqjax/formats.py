@@ -192,21 +192,29 @@ def _write_png(path, image: RangeImage, depth_scale=1.0, **_):
 
 
 # ---------------------------------------------------------------------------------------- point sets
-def _mesh_points(path):
+def load_mesh(path, **kw):
+    """`trimesh.load(path, **kw)` of a mesh file, an `.obj` decoded as UTF-8, else Latin-1 (trimesh
+    would need charset_normalizer); a ValueError that names the cause for a file trimesh cannot read."""
     import trimesh
 
+    path = Path(os.fspath(path))
     try:
-        if path.suffix.lower() == ".obj":  # text: UTF-8, else Latin-1 (trimesh would need charset_normalizer)
+        if path.suffix.lower() == ".obj":
             raw = path.read_bytes()
             try:
                 raw.decode("utf-8")
             except UnicodeDecodeError:
                 raw = raw.decode("latin-1").encode("utf-8")
-            obj = trimesh.load(io.BytesIO(raw), file_type="obj", process=False)
-        else:
-            obj = trimesh.load(path, process=False)
+            return trimesh.load(io.BytesIO(raw), file_type="obj", **kw)
+        return trimesh.load(path, **kw)
     except Exception as e:  # trimesh raises many kinds of errors on bad input
         raise ValueError(f"could not read with trimesh ({type(e).__name__}: {e})") from None
+
+
+def _mesh_points(path):
+    import trimesh
+
+    obj = load_mesh(path, process=False)
     verts = []
     for g in obj.dump() if isinstance(obj, trimesh.Scene) else [obj]:
         v = np.asarray(getattr(g, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)

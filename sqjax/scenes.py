@@ -354,8 +354,13 @@ def multipart_scene(
 def _mesh(mesh):
     import trimesh
 
+    from .formats import load_mesh
+
     if not isinstance(mesh, trimesh.Trimesh):
-        mesh = trimesh.load(mesh, force="mesh")
+        try:
+            mesh = load_mesh(mesh, force="mesh")
+        except ValueError as e:
+            raise ValueError(f"mesh_scene: {mesh}: {e}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError("mesh_scene: the mesh has no faces (a point cloud? segment it as points)")
     return mesh

@@ -286,6 +286,19 @@ def test_a_found_part_maps_back_to_the_mesh_frame():
     assert np.all(np.abs(part.bounds - box.bounds) < 0.1 * np.array([1.0, 0.5, 0.3]))
 
 
+def test_mesh_scene_reads_files_as_read_points_does(tmp_path):
+    """A mesh file is loaded as `read_points` loads it (`formats.load_mesh`): an OBJ with a Latin-1
+    comment renders its two boxes (it stopped on a missing charset_normalizer inside trimesh), and a
+    file trimesh cannot parse is refused with its name."""
+    text = _two_boxes().export(file_type="obj")
+    (tmp_path / "boxes.obj").write_bytes(("# caf\xe9 \xb5m\n" + text).encode("latin-1"))
+    image = mesh_scene(tmp_path / "boxes.obj", shape=SHAPE, noise=0.0)[0]
+    assert set(np.unique(image.labels)) == {0, 1, 2}
+    (tmp_path / "bad.glb").write_bytes(b"glTF not really")
+    with pytest.raises(ValueError, match="bad.glb"):
+        mesh_scene(tmp_path / "bad.glb", shape=SHAPE)
+
+
 def test_mesh_scene_views_and_bad_meshes(tmp_path):
     """Views from other azimuths see the parts from other sides; a file of points (no faces) and a mesh
     of only tiny components are refused by name."""

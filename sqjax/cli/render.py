@@ -41,7 +41,8 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
         type=view_arg,
         default=None,
         metavar="AZ,EL",
-        help="a mesh seen from azimuth AZ about its z axis and elevation EL, in degrees (default 30,30)",
+        help="a mesh seen from azimuth AZ about its z axis and elevation EL, in degrees "
+        f"(default {DEFAULT_VIEW[0]:g},{DEFAULT_VIEW[1]:g})",
     )
     r.add_argument(
         "--depth-scale",
@@ -61,6 +62,8 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
 
 
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf")
+DEFAULT_VIEW = (30.0, 30.0)
+"""A mesh's view without --view: azimuth and elevation in degrees."""
 
 
 def view_arg(text: str) -> tuple[float, float]:
@@ -78,18 +81,16 @@ def _is_mesh(name: str) -> bool:
     return Path(name).suffix.lower() in MESH_SUFFIXES
 
 
-def _scene(name: str, shape, noise, seed, view=None) -> tuple[Any, list[Any], Any]:
-    """(range image, its true parts: superquadrics or meshes, the mesh-to-camera similarity or None)."""
+def _scene(name: str, shape, noise, seed, view: tuple[float, float] = DEFAULT_VIEW) -> tuple[Any, list[Any], Any]:
+    """(range image, its true parts: superquadrics or meshes, the mesh-to-camera similarity or None).
+    `view`: a mesh's (azimuth, elevation)."""
     from ..scenes import PAPER_SCENES, mesh_scene, paper_scene, random_scene
 
     if _is_mesh(name):
         if not Path(name).is_file():
             raise CLIError(f"{name}: no such mesh file")
         kw = {} if noise is None else {"noise": noise}
-        az, el = view or (30.0, 30.0)
-        return mesh_scene(name, azimuth=az, elevation=el, shape=shape, seed=seed, **kw)
-    if view is not None:
-        raise CLIError(f"--view places a mesh file's camera; {name!r} is not a mesh file")
+        return mesh_scene(name, azimuth=view[0], elevation=view[1], shape=shape, seed=seed, **kw)
 
     if name.startswith("random:") or name == "random":
         try:
@@ -123,7 +124,10 @@ def run(args) -> int:
     for target in (out, json_path):  # both writable, or neither is written (before the ray casting)
         if target is not None:
             check_writable_file(target)
-    image, truth, to_camera = _scene(args.scene, args.shape, args.noise, args.seed, args.view)
+    if args.view is not None and not _is_mesh(args.scene):
+        raise CLIError(f"--view places a mesh file's camera; {args.scene!r} is not a mesh file")
+    view = args.view or DEFAULT_VIEW
+    image, truth, to_camera = _scene(args.scene, args.shape, args.noise, args.seed, view)
     doc = None
     if json_path is not None:
         doc = {
@@ -138,8 +142,7 @@ def run(args) -> int:
             import numpy as np
 
             labels = np.asarray(image.labels)
-            az, el = args.view or (30.0, 30.0)
-            doc["view"] = {"azimuth": az, "elevation": el}
+            doc["view"] = {"azimuth": view[0], "elevation": view[1]}
             doc["mesh_to_camera"] = to_camera.tolist()
             doc["parts"] = [
                 {"label": i + 1, "faces": len(p.faces), "visible_pixels": int(np.sum(labels == i + 1))}
