@@ -41,7 +41,8 @@ def read_intrinsics(path_or_dict) -> PinholeCamera:
     - `{"fx", "fy", "cx", "cy"}` (pixels); `x_offset` / `y_offset` (or `ppx` / `ppy`) for cx / cy;
     - Open3D's `PinholeCameraIntrinsic` JSON: `{"width", "height", "intrinsic_matrix": [9 numbers,
       column-major]}`;
-    - a 3 x 3 matrix under `K`, `camera_matrix` or `intrinsic_matrix` (nested lists, row-major).
+    - a 3 x 3 matrix under `K`, `camera_matrix` or `intrinsic_matrix` (nested lists, row-major);
+    - sqjax's own JSON (`sqjax render --json`, a result's `models.json`): its `camera` and `image_size`.
 
     Optional `width` / `height` (or `img_width` / `img_height`) are checked against the depth image by
     `read_rgbd`. Raises FileNotFoundError / ValueError naming the file.
@@ -66,6 +67,11 @@ def intrinsics_of(path_or_dict):
             raise ValueError(f"{p}: cannot read ({e.strerror or e})") from None
     if isinstance(d, dict) and isinstance(d.get("intrinsic"), dict):  # nested, as some tools write
         d = d["intrinsic"]
+    if isinstance(d, dict) and isinstance(d.get("camera"), dict):  # sqjax's own: render --json, models.json
+        cam, size = d["camera"], d.get("image_size")
+        if cam.get("model", "pinhole") != "pinhole":
+            raise ValueError(f"{where}: its camera is {cam.get('model')}, not pinhole (pass --ortho instead)")
+        d = {**cam, **(dict(zip(("height", "width"), size)) if isinstance(size, list) and len(size) == 2 else {})}
     if not isinstance(d, dict):
         raise ValueError(f"{where}: intrinsics must be a JSON object, got {type(d).__name__}")
     pick = lambda *keys: next((d[k] for k in keys if k in d), None)

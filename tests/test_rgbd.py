@@ -139,3 +139,18 @@ def test_real_mosd_pcd_keeps_its_rgba():
     image = read_range_image(sorted(folder.glob("*.pcd"))[0])
     assert image.colors is not None and image.colors.shape == image.shape + (3,)
     assert 50 < image.colors.mean() < 230 and image.colors.std() > 10  # a real photo, not zeros
+
+
+def test_intrinsics_from_sqjax_json(tmp_path):
+    """`sqjax render --json` and a result's models.json carry the camera: --intrinsics reads them, size included."""
+    _frame(tmp_path)
+    doc = {"version": 1, "image_size": [24, 32], "camera": {"model": "pinhole", **vars(CAM)}, "parts": []}
+    (tmp_path / "render.json").write_text(json.dumps(doc))
+    assert read_rgbd(tmp_path / "depth.png", intrinsics=tmp_path / "render.json").camera == CAM
+    (tmp_path / "other.json").write_text(json.dumps({**doc, "image_size": [48, 64]}))
+    with pytest.raises(ValueError, match=r"depth\.png.*32x24.*64x48"):
+        read_rgbd(tmp_path / "depth.png", intrinsics=tmp_path / "other.json")
+    ortho = {**doc, "camera": {"model": "orthographic", "pixel_size": 0.01, "cx": 15.5, "cy": 11.5}}
+    (tmp_path / "ortho.json").write_text(json.dumps(ortho))
+    with pytest.raises(ValueError, match=r"ortho\.json.*orthographic, not pinhole.*--ortho"):
+        read_intrinsics(tmp_path / "ortho.json")

@@ -60,7 +60,8 @@ def add_args(subparsers, parents=()) -> argparse.ArgumentParser:
     cam.add_argument(
         "--intrinsics",
         metavar="FILE.json",
-        help="pinhole intrinsics JSON: fx, fy, cx, cy (or x_offset, y_offset) or Open3D's intrinsic_matrix",
+        help="pinhole intrinsics JSON: fx, fy, cx, cy (or x_offset, y_offset), Open3D's intrinsic_matrix, or the "
+        "camera of 'sqjax render --json' or of a result's models.json",
     )
     s.add_argument("--color", metavar="IMAGE", help="colour image registered to the depth (RGB-D); used in figure.png")
     s.add_argument(
