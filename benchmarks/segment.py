@@ -5,6 +5,7 @@
     python benchmarks/segment.py --suites mosd,multipart --out benchmarks/out/segment.json
     python benchmarks/segment.py --figures benchmarks/figures   # also figures of the worst scenes
     python benchmarks/segment.py --labels out/labels     # also every scene's label image (.npz per suite)
+    python benchmarks/segment.py --suites meshes --spread 1e-5,2e-5,3e-5   # also the spread under rounding
 
 Suites:
 - `synthetic`: seeded `sqjax.scenes.random_scene`s (2-6 separate, touching, intersecting or occluding parts,
@@ -349,6 +350,14 @@ def main(argv=None):
         "spread (compare two versions of the code only by more than that)",
     )
     ap.add_argument(
+        "--spread",
+        default="",
+        metavar="EPS[,EPS...]",
+        help="also run every suite again with each of these perturbations (as --perturb) and report its "
+        "correct count beside the main run's, their mean, minimum and maximum: the benchmark's own "
+        "spread, in the same run (e.g. 1e-5,2e-5,3e-5: each suite takes that many times longer)",
+    )
+    ap.add_argument(
         "-o",
         "--option",
         action="append",
@@ -374,6 +383,7 @@ def main(argv=None):
         "options": results_options,
         "perturb": args.perturb,
     }
+    spread = [float(e) for e in args.spread.split(",") if e.strip()]
     scenes = {}  # suite -> [(name, thunk returning (image or cloud, truth labels, run_scene kwargs))]
     if "synthetic" in suites:
 
@@ -435,6 +445,8 @@ def main(argv=None):
         # (the rooms at their own density likewise, the thinned room2 apart)
         scored = [r for r in rows if not r["scene"].startswith(("single:", "closed:", "density:"))] or rows
         results[suite] = {"rows": rows, "summary": summarise(scored)}
+        if spread:
+            results[suite]["spread"] = spread_of(items, {r["scene"] for r in scored}, spread, results[suite]["summary"])
         thinned = [r for r in rows if r["scene"].startswith("density:")]
         if thinned:
             results[suite]["density"] = summarise(thinned)
@@ -463,6 +475,29 @@ def main(argv=None):
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1))
     print(f"wrote {args.out}")
+
+
+def spread_of(items, scored: set, spread: list, summary: dict) -> dict:
+    """The suite's scored scenes run again under each perturbation of `spread` (`perturbed`): the
+    correct counts at T = 0.8, the main run's first, with their mean, minimum and maximum."""
+    counts = [summary["correct"]]
+    for eps in spread:
+        n = 0
+        for name, make in items:
+            if name in scored:
+                image, truth, kw = make()
+                n += run_scene(perturbed(image, eps), truth, **kw)["correct"]
+        counts.append(n)
+        print(f"spread: perturb {eps:g}: {n} correct of {summary['truth_parts']}", flush=True)
+    c = np.array(counts, float)
+    return {
+        "perturb": spread,
+        "correct": counts,
+        "truth_parts": summary["truth_parts"],
+        "mean": float(c.mean()),
+        "min": int(c.min()),
+        "max": int(c.max()),
+    }
 
 
 def print_table(results):
@@ -506,6 +541,14 @@ def print_table(results):
         if key in results and "split_t05_t08" in (s := results[key]["summary"])
     ]
     print("correct at T = 0.5, not at 0.8, split/swollen/both: " + ", ".join(split))
+    spreads = [(k, v["spread"]) for k, v in results.items() if isinstance(v, dict) and "spread" in v]
+    for key, sp in spreads:
+        counts, eps = " ".join(str(c) for c in sp["correct"]), ", ".join(f"{e:g}" for e in sp["perturb"])
+        rate = sp["mean"] / max(sp["truth_parts"], 1)
+        print(
+            f"spread of {key}: correct {counts} of {sp['truth_parts']} (this run, then --perturb {eps}): "
+            f"mean {sp['mean']:.1f} ({rate:.1%})"
+        )
     print(f"peak RSS {results['peak_rss_gib']:.2f} GiB")
 
 
