@@ -67,8 +67,11 @@ def intrinsics_of(path_or_dict):
             raise ValueError(f"{p}: cannot read ({e.strerror or e})") from None
     if isinstance(d, dict) and isinstance(d.get("intrinsic"), dict):  # nested, as some tools write
         d = d["intrinsic"]
-    if isinstance(d, dict) and isinstance(d.get("camera"), dict):  # sqjax's own: render --json, models.json
-        cam, size = d["camera"], d.get("image_size")
+    own = isinstance(d, dict) and "camera" in d and "image_size" in d  # sqjax's: render --json, models.json
+    if own:
+        cam, size = d["camera"], d["image_size"]
+        if not isinstance(cam, dict):
+            raise ValueError(f"{where}: a point cloud's result, with no camera")
         if cam.get("model", "pinhole") != "pinhole":
             raise ValueError(f"{where}: its camera is {cam.get('model')}, not pinhole (pass --ortho instead)")
         d = {**cam, **(dict(zip(("height", "width"), size)) if isinstance(size, list) and len(size) == 2 else {})}

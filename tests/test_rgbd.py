@@ -154,3 +154,6 @@ def test_intrinsics_from_sqjax_json(tmp_path):
     (tmp_path / "ortho.json").write_text(json.dumps(ortho))
     with pytest.raises(ValueError, match=r"ortho\.json.*orthographic, not pinhole.*--ortho"):
         read_intrinsics(tmp_path / "ortho.json")
+    (tmp_path / "cloud.json").write_text(json.dumps({**doc, "image_size": None, "camera": None}))
+    with pytest.raises(ValueError, match=r"cloud\.json: a point cloud's result, with no camera"):
+        read_intrinsics(tmp_path / "cloud.json")
