@@ -67,8 +67,7 @@ def intrinsics_of(path_or_dict):
             raise ValueError(f"{p}: cannot read ({e.strerror or e})") from None
     if isinstance(d, dict) and isinstance(d.get("intrinsic"), dict):  # nested, as some tools write
         d = d["intrinsic"]
-    own = isinstance(d, dict) and "camera" in d and "image_size" in d  # sqjax's: render --json, models.json
-    if own:
+    if isinstance(d, dict) and "camera" in d and "image_size" in d:  # sqjax's: render --json, models.json
         cam, size = d["camera"], d["image_size"]
         if not isinstance(cam, dict):
             raise ValueError(f"{where}: a point cloud's result, with no camera")
