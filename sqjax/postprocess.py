@@ -39,7 +39,9 @@ def merge(ws: Workspace, models: Models, memory: MergeMemory | None = None) -> M
     tried = memory.unions
     keep_fraction = ws.opts.growth.keep_fraction
     key = [models.theta[i].tobytes() + np.packbits(models.regions[i]).tobytes() for i in range(len(models.theta))]
-    candidates = merge_candidates(ws.host_points, models.regions, one_view=ws.dom.is_image, known=memory.gaps)
+    one_view = ws.dom.is_image
+    neighbours = None if one_view else ws.dom.neighbours
+    candidates = merge_candidates(ws.host_points, models.regions, one_view, memory.gaps, neighbours)
     pairs = [p for p in candidates if (key[p[0]], key[p[1]]) not in tried]
     new = _union_hypotheses(ws, models, pairs, keep_fraction) if pairs else {}
     for p in pairs:
@@ -164,7 +166,13 @@ MERGE_NEIGHBOURS = 4
 list measured with 2, 4 and 6 (benchmarks/RESULTS.md, 2026-12-06 late evening): mOSD 261, 262, 261."""
 
 
-def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = True, known: dict | None = None) -> list:
+def merge_candidates(
+    points: np.ndarray,
+    regions: np.ndarray,
+    one_view: bool = True,
+    known: dict | None = None,
+    neighbours: np.ndarray | None = None,
+) -> list:
     """Pairs (i, j), i < j, of models worth a union fit: every pair when there are few models, else each
     model with its `MERGE_NEIGHBOURS` nearest by the gaps below, so that the union fits grow linearly
     with the number of models, not quadratically (a scene of hundreds of selected pieces must not cost
@@ -179,15 +187,25 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
       order of sphere gap until it exceeds the `MERGE_NEIGHBOURS`-th found. A cloud (no viewpoint)
       keeps the first list: there the nearest pieces by their points are the touching parts of one
       object (a chair's seat and back), and their unions cost Bobkov's rooms 27 -> 23 parts.
-      `known` (filled in) holds the point gaps measured so far, keyed by both regions: a merge round
-      measures only the pairs with a region the previous rounds did not have.
+    - A cloud with its adjacency `neighbours` (P, k): of that list only the pairs whose regions touch
+      (`touching`). Without a camera nothing tells a gap an occluder made from empty space, and a
+      part is one connected surface: one slab explained the backs of two chairs 17 cm apart in
+      Bobkov's room2 (their union kept, one region). Measured (benchmarks/RESULTS.md, 2026-12-07
+      morning): clouds 123 / 134 -> 131 / 140 of 161 parts (unperturbed / `--perturb 1e-5`),
+      room2 12 -> 13 of 48 and thinned to 1/2 and 1/4 7 -> 15 and 3 -> 6, room1 15 of 44 either
+      way; mOSD views as clouds leave more objects in their occluded pieces (over-segmented 6 -> 12)
+      but find 74 of 93 against 72.
+
+    `known` (filled in) holds the point gaps measured so far, keyed by both regions: a merge round
+    measures only the pairs with a region the previous rounds did not have.
 
     Over the whole benchmark (benchmarks/RESULTS.md, 2026-12-06 late evening), against the sphere
     gap alone: mOSD 260 -> 262 of 285 objects, every other image suite the same; the point gap
     alone, mOSD 259 (a complex scene's table left in pieces)."""
     M = len(regions)
+    touch = touching(regions, neighbours) if neighbours is not None and not one_view else None
     if M <= 2 * MERGE_NEIGHBOURS + 1:
-        return [(i, j) for i in range(M) for j in range(i + 1, M)]
+        return [(i, j) for i in range(M) for j in range(i + 1, M) if touch is None or (i, j) in touch]
     members = [points[r] for r in regions]
     centre = np.stack([q.mean(0) for q in members])
     radius = np.array([np.linalg.norm(q - c, axis=1).max() for q, c in zip(members, centre)])
@@ -196,7 +214,7 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
     order = np.argsort(sphere, 1, kind="stable")[:, : M - 1]
     out = {(min(i, int(j)), max(i, int(j))) for i in range(M) for j in order[i, :MERGE_NEIGHBOURS]}
     if not one_view:
-        return sorted(out)
+        return sorted(out if touch is None else out & touch)
 
     from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
 
@@ -221,6 +239,22 @@ def merge_candidates(points: np.ndarray, regions: np.ndarray, one_view: bool = T
             near = sorted(near + [(gap(i, int(j)), int(j))])[:MERGE_NEIGHBOURS]
         out |= {(min(i, j), max(i, j)) for _, j in near}
     return sorted(out)
+
+
+def touching(regions: np.ndarray, neighbours: np.ndarray) -> set:
+    """Pairs (i, j), i < j, of regions (M, P) bool that share a point or are joined by an edge of the
+    adjacency `neighbours` (P, k) (-1: none)."""
+    from scipy import sparse
+
+    M, P = regions.shape
+    rows, cols = np.nonzero(neighbours >= 0)
+    A = sparse.csr_matrix((np.ones(rows.size), (rows, neighbours[rows, cols])), shape=(P, P))
+    A = A + A.T + sparse.identity(P, format="csr")
+    m, p = np.nonzero(regions)
+    R = sparse.csr_matrix((np.ones(m.size), (m, p)), shape=(M, P))
+    T = (R @ A @ R.T).toarray() > 0
+    i, j = np.nonzero(np.triu(T, 1))
+    return set(zip(i.tolist(), j.tolist()))
 
 
 def prune_redundant(models: Models, min_exclusive: float, min_points: int = 0) -> int:

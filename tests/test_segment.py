@@ -424,6 +424,28 @@ def test_a_closed_cloud_is_not_left_in_pieces():
         assert np.bincount(half).max() >= 0.97 * 4000
 
 
+def test_a_cloud_keeps_two_coplanar_slabs_that_do_not_touch_apart():
+    """Two boxy slabs side by side in one plane, sampled all round, 0.05-0.2 apart (the backs of two
+    chairs in a row): one slab explains both, and before unions were limited to touching regions the
+    merge made them one part (each gap). A cloud has no camera to tell an occluded gap from an empty
+    one, so its pieces join only where they touch (`postprocess.touching`)."""
+    from sqjax.postprocess import touching
+
+    for gap in (0.05, 0.2):
+        slabs = [
+            Superquadric.create((0.3, 0.2, 0.03), (0.2, 0.2), translation=(s * (0.3 + gap / 2), 0, 0)) for s in (-1, 1)
+        ]
+        pts = np.concatenate([sample_surface(q, 3000, seed=k, noise=0.002) for k, q in enumerate(slabs)])
+        seg = segment(pts)
+        assert len(seg.parts) == 2
+        first, second = (np.bincount(half, minlength=3) for half in (seg.labels[:3000], seg.labels[3000:]))
+        assert first.argmax() != second.argmax() and min(first.max(), second.max()) >= 0.97 * 3000
+    regions = np.zeros((3, 6), bool)
+    regions[0, :2], regions[1, 2:4], regions[2, [3, 5]] = True, True, True
+    neighbours = np.array([[1], [2], [-1], [-1], [-1], [-1]])  # 1 -> 2 joins regions 0 and 1
+    assert touching(regions, neighbours) == {(0, 1), (1, 2)}  # 1 and 2 share point 3; 0 and 2 do not touch
+
+
 def test_repeated_points_are_segmented_once_and_labelled_alike():
     """A cloud with every third point written twice segments as the distinct cloud does (k nearest
     neighbours among copies join nothing: 50 points written 40 times each gave 25 parts of zero size),
