@@ -226,8 +226,8 @@ def _mesh_points(path):
 
 def _text_points(path):
     lines = [s for s in path.read_text(errors="replace").splitlines() if s.strip() and s.strip()[0] != "#"]
-    if path.suffix.lower() == ".csv" and lines and not _numeric(lines[0].replace(",", " ").split()[:3]):
-        lines = lines[1:]  # a header row: "x,y,z"
+    if lines and not _numeric(lines[0].replace(",", " ").split()[:3]):
+        lines = lines[1:]  # a header row: "x,y,z" or "x y z"
     if not lines:
         return np.zeros((0, 3)), None
     try:
@@ -239,6 +239,9 @@ def _text_points(path):
 
 def _npy_points(path):
     pts = _load_npy(path)
+    if isinstance(pts, dict):  # a pickled frame (UOIS): a range image, not a cloud
+        what = "an RGB-D frame (a dict with 'depth'): a range image" if "depth" in pts else "a pickled dict"
+        raise ValueError(f"holds {what}, not an (N, 3) point array (keys: {sorted(map(str, pts))})")
     if not (_cloud_shape(pts.shape) and is_real(pts.dtype)):
         raise ValueError(
             f"points must be a real numeric (N, 3) array (x y z, up to {_MAX_COLUMNS - 3} more columns), got "
@@ -440,8 +443,8 @@ def read_points(path, *, with_labels: bool = False):
     (a file whose every row has one is an error).
 
     `.ply` / `.obj` / `.stl` (via trimesh; meshes give their distinct vertex positions), `.xyz` / `.txt`
-    / `.csv` (whitespace or comma separated, first 3 columns used, `#` comments; a CSV may start with
-    one header row such as `x,y,z`), `.npy` `(N, 3)` (to `(N, 7)`, first 3 columns used), `.pcd` (any
+    / `.csv` (whitespace or comma separated, first 3 columns used, `#` comments; the file may start with
+    one header row such as `x,y,z` or `x y z`), `.npy` `(N, 3)` (to `(N, 7)`, first 3 columns used), `.pcd` (any
     organisation). With `with_labels=True` returns `(points, labels)`: `(N,)` int64 from a PCD `label`
     field, else None. Raises FileNotFoundError / ValueError naming the file. `read_input` (what `sqjax
     segment` reads) keeps the NaN rows instead.

@@ -198,6 +198,9 @@ def test_points_text_variants_and_nan(tmp_path):
     # a spreadsheet's CSV: one header row; and written back as CSV
     (tmp_path / "c.csv").write_text("x,y,z,intensity\n1,2,3,0.5\n4,5,6,0.1\n")
     assert np.array_equal(read_points(tmp_path / "c.csv"), [[1, 2, 3], [4, 5, 6]])
+    for ext in (".xyz", ".txt"):  # the header of a space-separated file (the README allows it for all three)
+        (tmp_path / f"h{ext}").write_text("x y z\n1 2 3\n4 5 6\n")
+        assert np.array_equal(read_points(tmp_path / f"h{ext}"), [[1, 2, 3], [4, 5, 6]])
     pts = np.random.default_rng(0).normal(size=(5, 3))
     write_points(tmp_path / "w.csv", pts)
     assert "," in (tmp_path / "w.csv").read_text() and np.array_equal(read_points(tmp_path / "w.csv"), pts)
@@ -222,6 +225,10 @@ def test_read_input_keeps_every_row_of_a_cloud(tmp_path):
     np.save(tmp_path / "d.npy", np.ones((20, 8)))  # 8 columns: a depth image, which needs a camera
     with pytest.raises(ValueError, match="stores no camera"):
         read_input(tmp_path / "d.npy")
+    frame = {"depth": np.ones((4, 5), np.float32), "rgb": np.zeros((4, 5, 3), np.uint8)}
+    np.save(tmp_path / "f.npy", np.array(frame, dtype=object), allow_pickle=True)  # UOIS's pickled frames
+    with pytest.raises(ValueError, match=r"f\.npy: holds an RGB-D frame .*not an \(N, 3\) point array"):
+        read_points(tmp_path / "f.npy")
     np.save(tmp_path / "e.npy", np.ones((4, 5, 6)))  # neither: the shape is named, not the camera
     with pytest.raises(ValueError, match=r"e\.npy: holds an array of shape \(4, 5, 6\)"):
         read_input(tmp_path / "e.npy")
