@@ -31,13 +31,26 @@ def surface_grid(sq: Superquadric, resolution: int = 48):
     return world_points(jax.tree.map(lambda v: np.asarray(v, float), sq), x, xp=np)
 
 
+LOCAL_MESH_SIZE = 1e-3
+"""`to_trimesh` meshes a model whose largest extent is below this in its own units (trimesh's vertex
+merge tolerance, 1e-8, is then over 1e-5 of the model)."""
+
+
 def to_trimesh(sq: Superquadric, resolution: int = 48):
-    """Closed triangle mesh of one superquadric (`trimesh.Trimesh`), world coordinates."""
+    """Closed triangle mesh of one superquadric (`trimesh.Trimesh`), world coordinates.
+
+    trimesh merges vertices closer than an absolute 1e-8, which collapsed every mesh of a model in
+    units of 1e-7 or less (`sqjax segment` then failed writing parts.glb): a model smaller than
+    `LOCAL_MESH_SIZE` is meshed about its centre in units of its size, then placed. Larger ones are
+    meshed where they are, as always (the scenes' renders and samples stay bit for bit)."""
     import trimesh
 
     g = surface_grid(sq, resolution)
     n_eta, n_om = g.shape[:2]
-    verts = g.reshape(-1, 3)
+    centre = np.asarray(sq.translation, float)
+    scale = float(np.max(np.abs(g - centre)))
+    local = 0.0 < scale < LOCAL_MESH_SIZE
+    verts = ((g - centre) / scale if local else g).reshape(-1, 3)
     i, j = np.meshgrid(np.arange(n_eta - 1), np.arange(n_om), indexing="ij")
     a = i * n_om + j
     b = i * n_om + (j + 1) % n_om
@@ -53,6 +66,8 @@ def to_trimesh(sq: Superquadric, resolution: int = 48):
         inward = mesh.volume < 0
     if inward:
         mesh.invert()
+    if local:
+        mesh.vertices = mesh.vertices * scale + centre
     return mesh
 
 

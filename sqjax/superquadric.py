@@ -146,7 +146,22 @@ class Superquadric(eqx.Module):
         }
 
     def __getitem__(self, index) -> Superquadric:
-        """The superquadric(s) at `index` of a batch (every field indexed along its leading axes)."""
+        """The superquadric(s) at `index` of a batch (every field indexed along its batch axes, the
+        leading axes of `size` but its last). Raises IndexError, as numpy does, for a single superquadric
+        (no batch axis), for more indices than batch axes and for a concrete integer index out of range
+        (JAX alone would clamp it and return the last model)."""
+        batch = np.shape(self.size)[:-1]
+        if not batch:
+            raise IndexError("a single Superquadric has no batch axis to index (its size has shape (3,))")
+        items = index if isinstance(index, tuple) else (index,)
+        if len(items) > len(batch) or any(i is None or i is Ellipsis for i in items):
+            raise IndexError(f"Superquadric: index {index!r} does not fit its batch shape {batch}")
+        for i, n in zip(items, batch):
+            if isinstance(i, jax.core.Tracer) or isinstance(i, slice):  # pyright: ignore[reportAttributeAccessIssue]
+                continue
+            i = np.asarray(i)
+            if i.dtype.kind in "iu" and i.size and not (-n <= i.min() and i.max() < n):
+                raise IndexError(f"Superquadric: index {i.tolist()} is out of range for a batch of {n}")
         return jax.tree.map(lambda v: v[index], self)
 
     def unbatch(self) -> list[Superquadric]:
@@ -337,24 +352,33 @@ def _per_point(fn, sq: Superquadric, points):
 
 
 @kernel_jit
+def _missing(points, value):
+    """`value` (...) with NaN where a point (..., 3) has a NaN coordinate: a missing point has no F and no
+    distance (the safe operands inside would give it a finite one, 2e-20 "inside")."""
+    return jnp.where(jnp.any(jnp.isnan(points), -1), jnp.nan, value)
+
+
 def inside_outside(sq: Superquadric, points):
-    """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside (eq. 5)."""
+    """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside (eq. 5); NaN for
+    a point with a NaN coordinate."""
     x = to_model_frame(sq, points)
-    return jnp.exp(log_inside_outside(x, jnp.log(sq.size), sq.epsilon))
+    return _missing(points, jnp.exp(log_inside_outside(x, jnp.log(sq.size), sq.epsilon)))
 
 
 @kernel_jit
 def contains(sq: Superquadric, points):
-    """Inside test, (..., 3) -> bool (...)."""
+    """Inside test, (..., 3) -> bool (...); False for a point with a NaN coordinate."""
     x = to_model_frame(sq, points)
-    return log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0
+    return (log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0) & ~jnp.any(jnp.isnan(points), -1)
 
 
 @kernel_jit
 def residual(sq: Superquadric, points):
-    """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...)."""
+    """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...); NaN for a point
+    with a NaN coordinate."""
     log_a = jnp.log(sq.size)
-    return size_weighted_residual(log_inside_outside(to_model_frame(sq, points), log_a, sq.epsilon), log_a)
+    f = size_weighted_residual(log_inside_outside(to_model_frame(sq, points), log_a, sq.epsilon), log_a)
+    return _missing(points, f)
 
 
 @kernel_jit

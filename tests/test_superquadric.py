@@ -138,6 +138,30 @@ def test_mesh_is_watertight(size, eps, extra):
     assert mesh.volume > 0
 
 
+def test_a_missing_point_has_no_value():
+    """A point with a NaN coordinate (missing data) gets NaN from F, the residual and the distance, and
+    is not inside; the safe operands inside the functions gave it F = 2e-20, "inside"."""
+    sq = Superquadric.create((1.0, 0.6, 1.4), (0.5, 0.8))
+    pts = np.array([[np.nan, 0.0, 0.0], [0.2, 0.1, 0.0], [0.0, np.nan, np.nan], [2.0, 0.0, 0.0]], np.float32)
+    for fn in (inside_outside, residual, distance):
+        v = np.asarray(fn(sq, pts))
+        assert np.isnan(v[[0, 2]]).all() and np.isfinite(v[[1, 3]]).all()
+        assert np.allclose(v[[1, 3]], np.asarray(fn(sq, pts[[1, 3]])))
+    assert np.asarray(contains(sq, pts)).tolist() == [False, True, False, False]
+
+
+@pytest.mark.parametrize("unit", [1e-9, 1e-7, 1e4])
+def test_a_mesh_does_not_depend_on_the_unit(unit):
+    """trimesh merges vertices within an absolute 1e-8: a model in units of 1e-7 or less collapsed to
+    no faces (and `sqjax segment` failed writing parts.glb). Meshed in the model's own scale, every
+    unit gives the same mesh, scaled."""
+    sq = Superquadric.create((1.0, 0.6, 1.4), (0.5, 0.8), euler=(0.1, 0.2, 0.3), translation=(1.0, -2.0, 3.0))
+    ref = to_trimesh(sq, 24)
+    scaled = to_trimesh(jax.tree.map(lambda v: v * unit if v.shape[-1:] == (3,) and v.ndim == 1 else v, sq), 24)
+    assert len(scaled.faces) == len(ref.faces) and scaled.is_watertight
+    assert np.allclose(scaled.vertices / unit, ref.vertices, rtol=1e-6, atol=1e-6)
+
+
 def test_a_flat_part_meshes_without_networkx():
     """A part flat to 1e-10 (what a cloud of repeated points gave) is meshed and exported: outward
     normals are a sign of the grid's volume, not trimesh's winding repair, which needs networkx (not a
@@ -204,6 +228,20 @@ def test_create_euler_and_rotation_agree():
     assert np.allclose(np.asarray(a.euler), [0.1, 0.2, 0.3], atol=1e-6)
     d = a.to_dict()
     assert set(d) >= {"size", "epsilon", "rotation", "euler_zyz", "translation", "taper", "bend"}
+
+
+def test_indexing_a_batch_checks_its_bounds():
+    """A batch indexes like a numpy array: out of range, or a single superquadric, is an IndexError
+    (JAX alone clamps: B[5] of a batch of 2 returned the last model, and sq[0] a broken one)."""
+    B = Superquadric.create(np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]))
+    assert np.allclose(np.asarray(B[1].size), [4, 5, 6]) and np.allclose(np.asarray(B[-2].size), [1, 2, 3])
+    assert B[np.array([1, 0])].size.shape == (2, 3) and B[:1].size.shape == (1, 3)
+    for bad in (2, -3, np.array([0, 2]), (0, 0)):
+        with pytest.raises(IndexError):
+            B[bad]
+    with pytest.raises(IndexError, match="no batch axis"):
+        B[0][0]
+    assert jax.jit(lambda i: B[i].size)(1).shape == (3,)  # a traced index is JAX's to clamp
 
 
 @pytest.mark.parametrize(
