@@ -103,9 +103,11 @@ def fit_calls(K: int, N: int, quarter: bool = True):
 def refit_points(largest: int, max_points: int) -> int:
     """Points per problem of a segmentation refit whose largest region has `largest` points (regions are
     subsampled to `max_points`): 128 when every region fits (seed windows at 160 x 120 hold about 100),
-    else `max_points` rounded up to a power of two: two kernels per option set."""
-    cap = bucket(max_points, 32)
-    return min(128, cap) if min(largest, max_points) <= 128 else cap
+    else `max_points` rounded up to a power of two: two kernels per option set. No more than the largest
+    region needs, rounded likewise: a `max_points` far above the data's size (`-o max_points=100000` on
+    a 3,072-pixel image) padded every refit to it, 25x the time, and 1e8 asked for 375 GiB."""
+    cap = bucket(min(max_points, max(largest, 1)), 32)
+    return min(128, bucket(max_points, 32)) if min(largest, max_points) <= 128 else cap
 
 
 PAIR_SIZES = (1024, 4096, 16384, PAIRS)

@@ -162,6 +162,14 @@ def test_each_refit_is_a_few_kernel_calls_of_fixed_shapes(monkeypatch):
     # the three starts of the seeds, then a step each, then the five starts of the parts' volumes
     assert len(refits) <= 3 * rounds + seg.stats["growth_steps"] + 5
     assert len(set(calls)) <= 6, sorted(set(calls))
+    # a max_points far above the data's size pads no refit beyond its largest region's bucket: 1e8
+    # asked for 375 GiB, and 1e5 took 25x the time of the default on a 3,072-pixel image
+    assert padding.refit_points(3000, 100_000) == 4096 and padding.refit_points(3000, 10**8) == 4096
+    assert padding.refit_points(100, 10**8) == 128 and padding.refit_points(200, 256) == 256
+    calls.clear()
+    small = image.subsample(2)
+    assert len(segment(small, merge=False, max_points=10**8).parts) >= 1
+    assert max(N for _, N in calls) <= padding.bucket(small.valid.sum(), 32), sorted(set(calls))
 
 
 def test_free_components_follow_the_adjacency():
