@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from .options import SegmentOptions
 
 MARKER = "done.json"
+SUMMARY_FILES = ("summary.csv", "summary.json")
 INPUT_EXTS = formats.INPUT_EXTENSIONS
 """Extensions `expand_inputs` picks from a folder (those `sqjax segment` reads: `formats.read_input`)."""
 
@@ -82,19 +83,23 @@ class _Config:
 # inputs
 
 
-def expand_inputs(specs: Iterable) -> list[Path]:
+def expand_inputs(specs: Iterable, exclude=None) -> list[Path]:
     """Files, folders (their files with an `INPUT_EXTS` extension, sorted, not recursive) and glob
     patterns -> a list of paths, duplicates dropped, order kept. A spec matching nothing raises
-    FileNotFoundError naming it."""
+    FileNotFoundError naming it. The summary files that `segment_many` writes into the folder `exclude`
+    (the output folder) are left out where a folder or a pattern finds them: a folder segmented into
+    itself would otherwise read the previous run's summary.csv as an input."""
     paths, seen = [], set()
+    own = set() if exclude is None else {(Path(os.fspath(exclude)) / n).resolve() for n in SUMMARY_FILES}
+    outside = lambda q: q.resolve() not in own
     for spec in specs:
         p = Path(os.fspath(spec))
         if p.is_dir():
-            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS)
+            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS and outside(q))
         elif p.exists():
             found = [p]
         elif glob.has_magic(str(spec)):
-            found = [Path(q) for q in sorted(glob.glob(str(spec)))]
+            found = [Path(q) for q in sorted(glob.glob(str(spec))) if outside(Path(q))]
         else:
             found = []
         if not found:

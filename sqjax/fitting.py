@@ -366,6 +366,8 @@ def fit(
     xp, dtype = _array_module(points, mask, init, dtype)
     if far_factor is not None and not far_factor > 1.0:
         raise ValueError(f"fit: far_factor must be > 1 or None, got {far_factor}")
+    if noise is not None and not (np.isfinite(noise) and noise > 0):
+        raise ValueError(f"fit: noise must be a finite number > 0 or None, got {noise}")
     points, mask, single = _checked_points(xp, points, mask, dtype)
     K = mask.shape[0]
     centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)

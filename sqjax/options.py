@@ -429,6 +429,15 @@ class SegmentOptions:
         group, field = names[key]
         spec = next(f for f in dataclasses.fields(FitOptions if group == "fit" else _GROUPS[group]) if f.name == field)
         default, annotation, text = spec.default, str(spec.type), text.strip()
+        want = (
+            "true or false"
+            if isinstance(default, bool)
+            else "an integer"
+            if isinstance(default, int) or "int" in annotation
+            else "a number"
+            if isinstance(default, float) or "float" in annotation
+            else "text"
+        ) + (" or none" if default is None or "None" in annotation else "")
         try:
             if text.lower() in ("none", "auto", "") and (default is None or "None" in annotation):
                 return key, None
@@ -442,7 +451,7 @@ class SegmentOptions:
                 return key, float(text)
             return key, text
         except ValueError:
-            raise ValueError(f"bad value for segment option {key}: {text!r}") from None
+            raise ValueError(f"bad value for segment option {key}: {text!r} (expected {want})") from None
 
     def flat(self) -> dict[str, Any]:
         """{flat name: value} of every option."""

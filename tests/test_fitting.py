@@ -187,6 +187,8 @@ def test_float64_path(batch):
         (np.random.default_rng(0).normal(size=(50, 3)), {"dtype": jnp.int32}, "dtype"),
         (np.array([["a", "b", "c"]] * 20), {}, "real numbers"),
         (np.ones((20, 3), complex), {}, "real numbers"),
+        (np.random.default_rng(0).normal(size=(50, 3)), {"noise": -1.0}, "noise must be"),
+        (np.random.default_rng(0).normal(size=(50, 3)), {"noise": float("nan")}, "noise must be"),
     ],
 )
 def test_bad_input_raises_value_error(points, kwargs, message):

@@ -138,6 +138,10 @@ def test_expand_inputs(scenes, tmp_path):
     assert expand_inputs([paths[1], d]) == [paths[1], paths[0], paths[2]]  # duplicates dropped, order kept
     with pytest.raises(FileNotFoundError, match="nothing-here"):
         expand_inputs([tmp_path / "nothing-here*.npz"])
+    # a folder segmented into itself: the previous run's summary.csv is not an input the second time
+    (d / "summary.csv").write_text("name,status\n")
+    assert d / "summary.csv" in expand_inputs([d]) and expand_inputs([d], exclude=d) == paths
+    assert expand_inputs([str(d / "*.csv")], exclude=tmp_path) == [d / "summary.csv"]  # another run's: an input
 
 
 def test_cli_folder(scenes, serial, tmp_path, capsys):

@@ -54,7 +54,7 @@ import os
 import sys
 
 from . import demo, evaluate, fit, render, segment
-from .common import EXIT_FAILURE, EXIT_USAGE, Parser, one_line
+from .common import EXIT_FAILURE, EXIT_USAGE, Parser, for_command_line, one_line
 
 COMMANDS = (segment, demo, render, evaluate, fit)
 """The commands' modules, in the order of `sqjax --help`."""
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError, OSError) as e:
         if os.environ.get("SQJAX_DEBUG"):
             raise
-        print(f"sqjax: error: {one_line(e)}", file=sys.stderr)
+        print(f"sqjax: error: {for_command_line(one_line(e))}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("sqjax: interrupted", file=sys.stderr)

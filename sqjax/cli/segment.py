@@ -14,7 +14,16 @@ import os
 import sys
 from pathlib import Path
 
-from .common import CLIError, camera_arg, depth_scale_arg, one_line, ortho_arg, positive, segment_options
+from .common import (
+    CLIError,
+    camera_arg,
+    depth_scale_arg,
+    for_command_line,
+    one_line,
+    ortho_arg,
+    positive,
+    segment_options,
+)
 from .progress import Progress
 
 
@@ -291,9 +300,9 @@ def run_many(args) -> int:
     from ..formats import read_input
     from ..summary import summary_table
 
-    paths = expand_inputs(args.input)
-    read = functools.partial(read_input, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale)
     out = Path(args.out) if args.out else Path("sqjax-many")
+    paths = expand_inputs(args.input, exclude=out)
+    read = functools.partial(read_input, camera=args.camera, ortho=args.ortho, depth_scale=args.depth_scale)
     results = segment_many(
         paths,
         out,
@@ -306,7 +315,7 @@ def run_many(args) -> int:
     )
     failed = [r for r in results if r.status == "failed"]
     for r in failed:
-        print(f"sqjax: error: {r.error}", file=sys.stderr)
+        print(f"sqjax: error: {for_command_line(r.error or '')}", file=sys.stderr)
     if not args.quiet:
         print(summary_table(results), end="")
         print(
