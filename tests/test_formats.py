@@ -513,7 +513,7 @@ def test_bad_arrays(tmp_path):
     with pytest.raises(ValueError, match=r"real numeric \(N, 3\)"):
         write_points(tmp_path / "out.ply", np.ones((30, 3), complex))
     (tmp_path / "two.txt").write_text("1 2\n3 4\n")
-    (tmp_path / "words.xyz").write_text("x y z\n1 2 3\n")
+    (tmp_path / "words.xyz").write_text("x y z\n1 2 3\nfour five six\n")  # a header row is fine, a later one not
     for name in ("two.txt", "words.xyz"):
         with pytest.raises(ValueError, match=f"{name}.*3 numeric columns"):
             read_points(tmp_path / name)

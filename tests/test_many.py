@@ -139,9 +139,12 @@ def test_expand_inputs(scenes, tmp_path):
     with pytest.raises(FileNotFoundError, match="nothing-here"):
         expand_inputs([tmp_path / "nothing-here*.npz"])
     # a folder segmented into itself: the previous run's summary.csv is not an input the second time
-    (d / "summary.csv").write_text("name,status\n")
-    assert d / "summary.csv" in expand_inputs([d]) and expand_inputs([d], exclude=d) == paths
-    assert expand_inputs([str(d / "*.csv")], exclude=tmp_path) == [d / "summary.csv"]  # another run's: an input
+    own = tmp_path / "own"  # a folder of its own: the module's scene folder is shared with other tests
+    own.mkdir()
+    np.save(own / "a.npy", np.ones((4, 4)))
+    (own / "summary.csv").write_text("name,status\n")
+    assert own / "summary.csv" in expand_inputs([own]) and expand_inputs([own], exclude=own) == [own / "a.npy"]
+    assert expand_inputs([str(own / "*.csv")], exclude=tmp_path) == [own / "summary.csv"]  # another run's: an input
 
 
 def test_cli_folder(scenes, serial, tmp_path, capsys):
