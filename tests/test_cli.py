@@ -683,3 +683,7 @@ def test_noise_free_cloud_gets_a_note_naming_noise(capsys, tmp_path):
     code, stdout, err = run(capsys, "segment", tmp_path / "noisy.npy", "--out", tmp_path / "b", "--no-figure")
     assert code == 0, err
     assert "noise-free" not in stdout
+    from sqjax.segmentation import noise_free
+
+    # one far row (a depth pixel at 1e30) does not make the noisy cloud's extent, and it noise-free
+    assert not noise_free(np.concatenate([noisy, [[1e30, 0.0, 0.0]]]), 0.004) and noise_free(pts, 1e-6)
