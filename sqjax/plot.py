@@ -44,16 +44,40 @@ def _shade(points: np.ndarray, orthographic: bool) -> np.ndarray:
     return np.where(np.isfinite(s), s, 0.8)
 
 
-def _cast_models(sqs, camera, shape, resolution):
-    """Ray cast superquadrics: (labels (H, W) int32, shading (H, W) in [0, 1])."""
+def _clipped(sqs, resolution, clip):
+    """The superquadrics as triangle meshes without the triangles reaching outside the box `clip`
+    ((lo, hi) corners (3,), camera frame); None where none is left."""
+    import trimesh
+
+    from .mesh import to_trimesh
+
+    out = []
+    for sq in sqs:
+        m = to_trimesh(sq, resolution)
+        v = np.asarray(m.vertices, float)
+        keep = ((v[m.faces] >= clip[0]) & (v[m.faces] <= clip[1])).all((1, 2))
+        out.append(trimesh.Trimesh(v, np.asarray(m.faces)[keep], process=False) if keep.any() else None)
+    return out
+
+
+def _cast_models(sqs, camera, shape, resolution, clip=None):
+    """Ray cast superquadrics: (labels (H, W) int32, shading (H, W) in [0, 1]). `clip`: (lo, hi)
+    corners (3,) of a box in the camera frame; the models' triangles reaching outside it are left out
+    (a growth model many times the data's size would cover the panel), so a cut model shows its inside."""
     from .rangeimage import OrthographicCamera
     from .raycast import render
 
-    if not sqs:
+    parts, owner = list(sqs), np.arange(len(sqs))
+    if clip is not None:
+        meshes = _clipped(sqs, resolution, clip)
+        owner = np.flatnonzero([m is not None for m in meshes])
+        parts = [meshes[i] for i in owner]
+    if not parts:
         return np.zeros(shape, np.int32), np.ones(shape)
-    r = render(sqs, camera, shape, resolution=resolution, refine=False)
+    r = render(parts, camera, shape, resolution=resolution, refine=False)
+    labels = np.r_[0, owner + 1].astype(np.int32)[np.asarray(r.labels)]  # 0 stays 0
     shade = _shade(camera.back_project(r.depth.astype(np.float64)), isinstance(camera, OrthographicCamera))
-    return r.labels, shade
+    return labels, shade
 
 
 def _paint(labels, shade, colors, valid=None):
@@ -75,18 +99,19 @@ def _paint(labels, shade, colors, valid=None):
     return rgb
 
 
-def render_models(models, camera, shape, *, colors=None, valid=None, resolution: int = 24):
+def render_models(models, camera, shape, *, colors=None, valid=None, resolution: int = 24, clip=None):
     """Ray cast superquadrics with `camera` into an `(H, W, 3)` float RGB image and `(H, W)` labels.
 
     **Arguments:**
     - `models`: `Superquadric`s (or `segment.Part`s), camera frame. `shape`: (H, W).
     - `colors`: `(len(models), 3)` uint8, default `label_colors(len(models))`.
     - `valid`: optional `(H, W)` bool data mask, drawn light grey where no model is in front.
+    - `clip`: optional `(lo, hi)` corners `(3,)` of a box (camera frame): the models are cut there.
 
     **Returns:** `(rgb, labels)`; labels as `sqjax.scenes.render` (0 = no model, i + 1 = models[i]).
     """
     sqs = _superquadrics(models)
-    labels, shade = _cast_models(sqs, camera, tuple(shape), resolution)
+    labels, shade = _cast_models(sqs, camera, tuple(shape), resolution, clip)
     colors = label_colors(len(sqs)) if colors is None else colors
     return _paint(labels, shade, colors, valid), labels
 
@@ -179,6 +204,13 @@ def _bulk(pts: np.ndarray) -> np.ndarray:
     lo, hi = np.quantile(pts[ok], [FAR_QUANTILE, 1.0 - FAR_QUANTILE], axis=0)
     span = hi - lo
     return ok & np.asarray(((pts >= lo - span) & (pts <= hi + span)).all(-1))
+
+
+def _box(pts: np.ndarray) -> np.ndarray:
+    """(2, 3): the box of the points (P, 3) with a fifth of its size around (where the model panels cut
+    the models)."""
+    lo, hi = pts.min(0), pts.max(0)
+    return np.stack([lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo)])
 
 
 def _far_note(far: int) -> str:
@@ -310,10 +342,12 @@ def figure_sequence(
         # the models are ray cast no finer than a panel's pixels (a third of the figure's width)
         step = max(1, int(np.ceil(max(H, W) / (fig.get_figwidth() * dpi / 3))))
         small = image.subsample(step)
+        box = _box(pts[bulk])
         for k, (name, models) in enumerate(panels):
             ax = fig.add_subplot(spec[(2 + k) // 3, (2 + k) % 3])
             sqs = _superquadrics(models)
-            lab, shade = _cast_models(sqs, small.camera, small.shape, resolution)
+            # growth models are cut at the data's box, as in the cloud panels; the final parts are whole
+            lab, shade = _cast_models(sqs, small.camera, small.shape, resolution, None if k == 2 else box)
             if k == 2:  # the final parts: the colours of labels.png
                 colors = label_colors(n_final)
             else:  # earlier models: the colour of the final part they overlap most
@@ -348,9 +382,7 @@ def figure_sequence(
                 else label_colors(len(models) + n_final)[_match_cloud(models, pts, final_labels, n_final)]
             )
             _scatter(ax, pts, [(_DATA_GREY,) * 3], max_points=max_points, size=0.5, keep=bulk)
-            # the data's box with a fifth of its size around: a swollen growth model is cut there
-            lo, hi = shown.min(0), shown.max(0)
-            box = np.stack([lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo)])
+            box = _box(shown)  # a swollen growth model is cut there
             draw_superquadrics(ax, models, colors, resolution=max(resolution // 2, 8), clip=box)
             _equal_3d(ax, box)
             _style_3d(ax)

@@ -295,3 +295,21 @@ def test_model_images_of_a_one_pixel_wide_image_are_shaded(shape):
     img, labels = render_models([sq], camera, shape)
     assert img.shape[:2] == shape and np.all(np.isfinite(img))
     assert (labels == 1).any()  # the model is drawn, not a blank panel
+
+
+def test_model_panels_cut_a_swollen_model_at_the_data_s_box():
+    """A growth model many times the data's size in front of the data covered the whole model panel
+    (box.STL, view 2); cut at the data's box it leaves the model behind it in view. The model of a
+    clipped-away part gets no pixels, and the labels still name the models' own indices."""
+    from sqjax.plot import render_models
+
+    small = Superquadric.create((0.3, 0.3, 0.3), translation=(0.0, 0.0, 3.0))
+    sheet = Superquadric.create((50.0, 50.0, 0.05), translation=(0.0, 0.0, 2.0))  # in front of everything
+    far = Superquadric.create((0.1, 0.1, 0.1), translation=(5.0, 0.0, 3.0))  # outside the box
+    camera = PinholeCamera(60.0, 60.0, 15.5, 15.5)
+    _, whole = render_models([small, sheet, far], camera, (32, 32))
+    assert np.all(whole == 2)  # the sheet hides everything
+    box = np.array([[-0.5, -0.5, 2.5], [0.5, 0.5, 3.5]])  # the data: around the small model
+    img, cut = render_models([small, sheet, far], camera, (32, 32), clip=box)
+    assert (cut == 1).sum() > 50 and not (cut == 2).any() and not (cut == 3).any()
+    assert np.all(np.isfinite(img))
