@@ -103,6 +103,10 @@ class FitOptions(eqx.Module):
     robust_rounds: int = eqx.field(static=True, default=3)
 
     def __check_init__(self):
+        for name in ("max_steps", "robust_rounds"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise ValueError(f"FitOptions.{name} must be an integer, got {v!r}")
         if int(self.max_steps) < 1:
             raise ValueError(f"FitOptions.max_steps must be >= 1, got {self.max_steps}")
         unknown = set(self.starts) - set(STARTS)
@@ -301,6 +305,21 @@ def _checked_points(xp, points, mask, dtype):
     return points, mask, single
 
 
+def _power_of_two(rel):
+    """(K,) float64 powers of two 2^k that bring each problem's largest |coordinate| (K, N, 3) into
+    [0.5, 1) (1 where all are 0)."""
+    m = np.max(np.abs(rel), axis=(1, 2))
+    _, e = np.frexp(np.where(m > 0, m, 1.0))
+    return np.ldexp(1.0, -e)
+
+
+def _scaled_fields(fields, p2):
+    """Warm-start fields (size, epsilon, rotation, translation, taper, bend) in the scaled frame."""
+    size, eps, R, t, taper, bend = fields
+    f = p2.astype(size.dtype)[:, None]
+    return size * f, eps, R, t * f, taper, bend / np.concatenate([f, np.ones_like(f)], -1).astype(bend.dtype)
+
+
 def _run_kernel(xp, pts, mask, fields, options):
     """Pad (K, N) problems to power-of-two buckets (N at least 128: small problems share one kernel;
     extra problems are copies of problem 0), call the kernel (split over the local CPU devices when
@@ -352,7 +371,8 @@ def fit(
     **Returns:** a `Fit` (parameters, cost, per-point distances and weights `(K, N)`, converged flags, status).
 
     The points are centred on their median in float64 on the host (numpy) before the cast to `dtype`,
-    so far-away coordinates lose nothing to float32; then padded (numpy) to power-of-two buckets (N at
+    so far-away coordinates lose nothing to float32, and scaled by a power of two (exact), so that
+    coordinates from 1e-30 to 1e19 fit alike in float32; then padded (numpy) to power-of-two buckets (N at
     least 128), so one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
     differentiation at the optimum; the same steps in jax.numpy). When JAX has several CPU devices
     (`parallel`: `jax_num_cpu_devices`) and they divide the padded batch, the
@@ -363,6 +383,8 @@ def fit(
     if options is not None and kw:
         raise TypeError(f"fit: pass either options= or keyword options, not both (got {sorted(kw)})")
     options = FitOptions(**kw) if options is None else options
+    if init is not None and not isinstance(init, Superquadric):
+        raise TypeError(f"fit: init must be a Superquadric (Superquadric.create(...)), got {type(init).__name__}")
     xp, dtype = _array_module(points, mask, init, dtype)
     if far_factor is not None and not far_factor > 1.0:
         raise ValueError(f"fit: far_factor must be > 1 or None, got {far_factor}")
@@ -373,8 +395,22 @@ def fit(
     centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
     degenerate = _degenerate(xp, rel, mask)
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)
+    # On the host each problem is scaled by a power of two to a largest |coordinate| in [0.5, 1): exact
+    # in floating point, so the kernel sees the same normalised points as before at ordinary scales,
+    # and coordinates of 1e19 (whose squares overflow float32) or 1e-30 (underflow) fit alike.
+    p2 = _power_of_two(rel) if xp is np else None
+    if p2 is not None:
+        rel = rel * p2[:, None, None]
+        if fields is not None:
+            fields = _scaled_fields(fields, p2)
     sqf, cost, conv, dist, weight, init_ok = _run_kernel(xp, rel.astype(dtype), mask, fields, options)
     size, eps, R, t, taper, bend = sqf
+    if p2 is not None:
+        inv = (1.0 / p2)[:, None]
+        size, dist = (size * inv).astype(size.dtype), (dist * inv).astype(dist.dtype)
+        t = t * inv  # float64, as the centre it is added to
+        bend = (bend * np.concatenate([1.0 / inv, np.ones_like(inv)], -1)).astype(bend.dtype)  # 1 / length
+        cost = (cost * inv[:, 0] ** (3 if options.residual == "size_weighted" else 2)).astype(cost.dtype)
     t = t.astype(centre.dtype) + centre
     finite_out = xp.isfinite(cost) & xp.all(xp.isfinite(size), -1) & xp.all(xp.isfinite(t), -1)
     finite_out = finite_out & xp.all(xp.isfinite(eps), -1) & xp.all(xp.isfinite(R), (-2, -1))

@@ -162,8 +162,10 @@ def _off_bounds(theta):
     return jnp.all(jnp.abs(d[:2]) < 1.0 - BOUND_TOLERANCE) & (d[2] < (1.0 - BOUND_TOLERANCE) * k_max)
 
 
-def fit_one(points, mask, theta0, opts):
-    """Fit one padded problem; points (N, 3) with mask (N,); theta0 (P,) or None (original units)."""
+def fit_one(points, mask, theta0, opts, stand_in: bool = False):
+    """Fit one padded problem; points (N, 3) with mask (N,); theta0 (P,) or None (original units).
+    `stand_in`: a problem with no valid point is solved on the unit sphere (`fit`'s batches may hold
+    empty problems; segmentation's never do, and its compiled kernel stays as it was)."""
     dtype = points.dtype
     w = mask.astype(dtype)
     n = jnp.maximum(jnp.sum(w), 1.0)
@@ -176,6 +178,13 @@ def fit_one(points, mask, theta0, opts):
         theta0 = theta0.at[LOG_SIZE].add(-jnp.log(scale)).at[TRANSLATION].set((theta0[TRANSLATION] - centre) / scale)
         if opts.deform:
             theta0 = theta0.at[BEND.start].multiply(scale)
+    # A problem with no valid point (a batch's empty slot) is solved on a stand-in, the unit sphere, so
+    # that its fit and the adjoint's linear solve stay finite: lineax refuses NaN input, and one empty
+    # problem failed the gradient of the whole batch. `fit` flags it (too few points) as before.
+    empty = ~jnp.any(mask) if stand_in else jnp.asarray(False)
+    if stand_in:
+        pn = jnp.where(empty, _unit_sphere(points.shape[0], dtype), pn)
+        mask = mask | empty
     adjoint = optx.ImplicitAdjoint(lx.AutoLinearSolver(well_posed=False))  # SVD: a sphere's pose is not unique
     theta, (cost, conv, weight) = adjoint.apply(_solve, _stationarity, (pn, mask, theta0, opts), frozenset())
     if opts.deform:  # deformations only where they pay for themselves: nested models
@@ -215,11 +224,22 @@ def fit_one(points, mask, theta0, opts):
         theta = theta.at[BEND.start].divide(scale)
     cost = cost * scale ** (3 if opts.residual == "size_weighted" else 2)  # f ~ sqrt(a1 a2 a3); d ~ length
     sq = to_superquadric(theta, opts.deform)
-    dist = jnp.where(mask, distance(sq, points), 0.0)
+    dist = (
+        jnp.where(mask & ~empty, distance(sq, points), 0.0) if stand_in else jnp.where(mask, distance(sq, points), 0.0)
+    )
     return theta, cost, conv, dist, weight
 
 
-def map_problems(points, mask, theta0, opts):
+def _unit_sphere(n: int, dtype):
+    """(3, n) points spread over the unit sphere (a Fibonacci lattice): a well-posed stand-in problem."""
+    i = jnp.arange(n, dtype=dtype) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = jnp.sqrt(jnp.maximum(1.0 - z * z, 0.0))
+    phi = i * jnp.pi * (3.0 - jnp.sqrt(jnp.asarray(5.0, dtype)))
+    return jnp.stack([r * jnp.cos(phi), r * jnp.sin(phi), z])
+
+
+def map_problems(points, mask, theta0, opts, stand_in: bool = False):
     """`fit_one` over the leading axis: one vmap on accelerators; on CPU a loop over small chunks
     (`padding.fit_chunk`).
 
@@ -228,12 +248,13 @@ def map_problems(points, mask, theta0, opts):
     """
     K, N = points.shape[:2]
     if jax.default_backend() != "cpu":
-        return jax.vmap(fit_one, in_axes=(0, 0, None if theta0 is None else 0, None))(points, mask, theta0, opts)
+        one = lambda p, m, t: fit_one(p, m, t, opts, stand_in)
+        return jax.vmap(one, in_axes=(0, 0, None if theta0 is None else 0))(points, mask, theta0)
     multistart = theta0 is None and opts.multistart  # its candidates run side by side on the screened points
     sub = opts.screen_points  # the deformed rounds run on every point, and so does a warm start
     screened = N if sub is None or not multistart or opts.deform else min(N, sub)
     chunk = fit_chunk(K, N, opts.num_candidates if multistart else 1, screened)
-    return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts), (points, mask, theta0), batch_size=chunk)
+    return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts, stand_in), (points, mask, theta0), batch_size=chunk)
 
 
 def padded_problems(points, mask, theta0, opts):
@@ -253,7 +274,7 @@ def fit_problems(points, mask, init, opts):
     theta0, init_ok = (
         (None, jnp.ones(points.shape[:1], bool)) if init is None else from_fields(init, opts.epsilon_range, opts.deform)
     )
-    theta, cost, conv, dist, weight = map_problems(points, mask, theta0, opts)
+    theta, cost, conv, dist, weight = map_problems(points, mask, theta0, opts, stand_in=True)
     sq = to_superquadric(theta, opts.deform)
     return (sq.size, sq.epsilon, sq.rotation, sq.translation, sq.taper, sq.bend), cost, conv, dist, weight, init_ok
 

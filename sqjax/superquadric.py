@@ -28,7 +28,7 @@ EPSILON_RANGE = (0.1, 1.9)
 """Range the shape exponents e1, e2 are kept in."""
 
 
-def _check_fields(**fields):
+def _check_fields(dtype=jnp.float32, **fields):
     """Host-side checks of `Superquadric.create`'s concrete arguments; a ValueError names the field."""
 
     def concrete(v):
@@ -48,6 +48,13 @@ def _check_fields(**fields):
             raise ValueError(f"Superquadric.create: {name} must be finite, got {v.tolist()}")
     if "size" in vals and not np.all(vals["size"] > 0):
         raise ValueError(f"Superquadric.create: size must be > 0, got {vals['size'].tolist()}")
+    info = jnp.finfo(dtype)
+    if "size" in vals and not np.all((vals["size"] >= info.tiny) & (vals["size"] <= info.max)):
+        # below the smallest normal number a size is flushed to 0 on CPU (then log a = -inf)
+        raise ValueError(
+            f"Superquadric.create: size must lie in [{float(info.tiny):.3g}, {float(info.max):.3g}] in "
+            f"{jnp.dtype(dtype).name}, got {vals['size'].tolist()}"
+        )
     if "epsilon" in vals and not np.all(vals["epsilon"] > 0):
         raise ValueError(f"Superquadric.create: epsilon must be > 0, got {vals['epsilon'].tolist()}")
     if "taper" in vals and not np.all(np.abs(vals["taper"]) <= 1.0):
@@ -99,12 +106,20 @@ class Superquadric(eqx.Module):
     ) -> Superquadric:
         """Build from plain values; `euler` = ZYZ angles (phi, theta, psi) as in the paper, or `rotation`.
 
-        Concrete values are checked (a `ValueError` names the field): sizes finite and > 0, exponents
+        Concrete values are checked (a `ValueError` names the field): sizes finite and normal numbers of
+        `dtype` (float32: 1.2e-38 .. 3.4e38), exponents
         finite and > 0, a rotation orthonormal with det +1 (to 1e-3), everything finite, taper in
         [-1, 1], bending curvature >= 0. Traced values (under jit / grad) are not checked.
         """
         _check_fields(
-            size=size, epsilon=epsilon, rotation=rotation, euler=euler, translation=translation, taper=taper, bend=bend
+            dtype,
+            size=size,
+            epsilon=epsilon,
+            rotation=rotation,
+            euler=euler,
+            translation=translation,
+            taper=taper,
+            bend=bend,
         )
         size = to_device(size, dtype)
         batch = size.shape[:-1]
@@ -353,29 +368,33 @@ def _per_point(fn, sq: Superquadric, points):
 
 @kernel_jit
 def _missing(points, value):
-    """`value` (...) with NaN where a point (..., 3) has a NaN coordinate: a missing point has no F and no
-    distance (the safe operands inside would give it a finite one, 2e-20 "inside")."""
-    return jnp.where(jnp.any(jnp.isnan(points), -1), jnp.nan, value)
+    """`value` (...) with NaN where a point (..., 3) has a NaN or infinite coordinate: a missing point has
+    no F and no distance (the safe operands inside would give it a finite one, 2e-20 "inside")."""
+    return jnp.where(_nonfinite(points), jnp.nan, value)
+
+
+def _nonfinite(points):
+    return ~jnp.all(jnp.isfinite(points), -1)
 
 
 def inside_outside(sq: Superquadric, points):
     """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside (eq. 5); NaN for
-    a point with a NaN coordinate."""
+    a point with a NaN or infinite coordinate."""
     x = to_model_frame(sq, points)
     return _missing(points, jnp.exp(log_inside_outside(x, jnp.log(sq.size), sq.epsilon)))
 
 
 @kernel_jit
 def contains(sq: Superquadric, points):
-    """Inside test, (..., 3) -> bool (...); False for a point with a NaN coordinate."""
+    """Inside test, (..., 3) -> bool (...); False for a point with a NaN or infinite coordinate."""
     x = to_model_frame(sq, points)
-    return (log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0) & ~jnp.any(jnp.isnan(points), -1)
+    return (log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0) & ~_nonfinite(points)
 
 
 @kernel_jit
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...); NaN for a point
-    with a NaN coordinate."""
+    with a NaN or infinite coordinate."""
     log_a = jnp.log(sq.size)
     f = size_weighted_residual(log_inside_outside(to_model_frame(sq, points), log_a, sq.epsilon), log_a)
     return _missing(points, f)
@@ -388,7 +407,7 @@ def distance(sq: Superquadric, points):
     Exact on the surface to first order; meant for points near the model (growing, selection). In
     closed form (`distance_from_log`), through the stretch of the deformations (`frame_distance`);
     values and reverse-mode gradients are finite for every finite input."""
-    return _per_point(lambda *a: frame_distance(*a, of_logs=distance_from_log), sq, points)
+    return _missing(points, _per_point(lambda *a: frame_distance(*a, of_logs=distance_from_log), sq, points))
 
 
 @kernel_jit
@@ -397,7 +416,7 @@ def signed_distance(sq: Superquadric, points):
     first-order distance to the surface through the root form of F (`signed_distance_from_log`),
     negative inside, in the units of the points. Closed-form gradient of log F: finite values and
     gradients for every finite input."""
-    return _per_point(frame_distance, sq, points)
+    return _missing(points, _per_point(frame_distance, sq, points))
 
 
 def _safe_norm(v):
@@ -418,4 +437,4 @@ def radial_distance(sq: Superquadric, points):
     |x| is a scaled norm (no overflow of |x|^2 beyond 1.8e19 in float32)."""
     x = to_model_frame(sq, points)
     logF = log_inside_outside(x, jnp.log(sq.size), sq.epsilon)
-    return _safe_norm(x) * jnp.abs(-jnp.expm1(-0.5 * logF))
+    return _missing(points, _safe_norm(x) * jnp.abs(-jnp.expm1(-0.5 * logF)))

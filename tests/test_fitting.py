@@ -231,3 +231,31 @@ def test_a_traced_size_bound_is_the_compiled_one():
     assert not np.allclose(out[True, False], out[False, False], atol=1e-3)
     with pytest.raises(ValueError, match="size_bound"):
         FitOptions(size_bound=jnp.ones(3, bool))
+
+
+def test_option_and_init_types_are_checked():
+    """`max_steps=2.5` failed deep inside `fori_loop` and `init=(1, 1, 1)` with an AttributeError."""
+    pts = np.random.default_rng(0).standard_normal((50, 3)).astype(np.float32)
+    with pytest.raises(ValueError, match="max_steps must be an integer"):
+        fit(pts, max_steps=2.5)
+    with pytest.raises(TypeError, match="init must be a Superquadric"):
+        fit(pts, init=(1.0, 1.0, 1.0))  # pyright: ignore[reportArgumentType]
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e-3, 1e19])
+def test_a_fit_does_not_depend_on_the_scale_of_the_coordinates(scale):
+    """Float32 coordinates of 1e19 (whose squares overflow) gave the fallback sphere, NONFINITE, and
+    1e-30 a wrong fit flagged converged: each problem is now scaled on the host by a power of two, so
+    the kernel sees the same normalised points at every scale. A warm start is scaled with them."""
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((300, 3))
+    truth = np.array([1.0, 0.7, 0.5])
+    pts = u / np.linalg.norm(u, axis=1, keepdims=True) * truth + [3.0, 1.0, 2.0] + 0.005 * rng.standard_normal((300, 3))
+    pts = pts * scale
+    res = fit(pts.astype(np.float32))
+    assert int(res.status) == 0 and bool(res.converged)
+    np.testing.assert_allclose(np.sort(np.asarray(res.superquadric.size)) / scale, np.sort(truth), rtol=1e-2)
+    np.testing.assert_allclose(np.asarray(res.superquadric.translation) / scale, [3.0, 1.0, 2.0], atol=1e-2)
+    init = Superquadric.create(tuple(truth * scale * 1.1), translation=tuple(np.array([3.0, 1.0, 2.0]) * scale))
+    warm = fit(pts.astype(np.float32), init=init)
+    np.testing.assert_allclose(np.sort(np.asarray(warm.superquadric.size)) / scale, np.sort(truth), rtol=1e-2)

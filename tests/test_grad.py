@@ -114,3 +114,22 @@ def test_deformed_fit_gradient_matches_finite_differences(x64):
     fd = float(jnp.dot(w, finite_difference_jvp(shape, p, v)))
     assert np.all(np.isfinite(np.asarray(grad)))
     assert float(jnp.sum(grad * v)) == pytest.approx(fd, rel=1e-3)
+
+
+def test_a_batch_with_an_empty_problem_differentiates():
+    """A batch whose second problem has no valid point this iteration (all masked, or all NaN): the
+    gradient of the first problem's volume is finite and the first problem's own. It raised lineax's
+    "non-finite input" for the whole batch (the empty fit was NaN inside the implicit adjoint)."""
+    pts = np.asarray(_points(200, noise=0.01), np.float32)
+    batch = jnp.asarray(np.stack([pts, pts + 3.0]))
+    mask = np.ones((2, 200), bool)
+    mask[1] = False
+    opts = FitOptions(multistart=False, max_steps=20)
+    alone = jax.grad(lambda p: fit(p, options=opts).superquadric.volume)(jnp.asarray(pts))
+    g_masked = jax.grad(lambda p: fit(p, mask, options=opts).superquadric.volume[0])(batch)
+    g_nan = jax.grad(lambda p: fit(p, options=opts).superquadric.volume[0])(batch.at[1].set(jnp.nan))
+    for g in (g_masked, g_nan):
+        assert bool(jnp.all(jnp.isfinite(g))) and float(jnp.max(jnp.abs(g[1]))) == 0.0
+        np.testing.assert_allclose(g[0], alone, rtol=1e-3, atol=1e-3 * float(jnp.max(jnp.abs(alone))))
+    res = jax.jit(lambda p: fit(p, mask, options=opts))(batch)
+    assert not bool(res.converged[1]) and int(res.status[1]) != 0  # still flagged: too few points

@@ -16,6 +16,7 @@ from sqjax.superquadric import (
     inside_outside,
     radial_distance,
     residual,
+    signed_distance,
 )
 
 SHAPES = [  # (size, epsilon, extra keywords)
@@ -148,6 +149,22 @@ def test_a_missing_point_has_no_value():
         assert np.isnan(v[[0, 2]]).all() and np.isfinite(v[[1, 3]]).all()
         assert np.allclose(v[[1, 3]], np.asarray(fn(sq, pts[[1, 3]])))
     assert np.asarray(contains(sq, pts)).tolist() == [False, True, False, False]
+    # an infinite coordinate likewise: (inf - t) R made NaN, which the safe operands sent to the centre
+    far = np.array([[np.inf, 0.0, 0.0], [0.2, 0.1, 0.0], [0.0, -np.inf, 1.0]], np.float32)
+    for fn in (inside_outside, residual, distance, signed_distance, radial_distance):
+        v = np.asarray(fn(sq, far))
+        assert np.isnan(v[[0, 2]]).all() and np.isfinite(v[1]), fn.__name__
+    assert np.asarray(contains(sq, far)).tolist() == [False, True, False]
+    assert np.isnan(np.asarray(radial_distance(sq, pts))[[0, 2]]).all()  # read 0, "on the surface"
+
+
+def test_a_size_below_the_dtype_s_normal_range_is_refused():
+    """A float32 size below 1.2e-38 was accepted (> 0 in float64), then flushed to 0 on CPU: F NaN at
+    the centre, `contains` False there."""
+    with pytest.raises(ValueError, match=r"size must lie in .*float32"):
+        Superquadric.create((1e-40, 1e-40, 1e-40))
+    sq = Superquadric.create((1e-30, 1e-30, 1e-30))  # small but normal: fine
+    assert bool(contains(sq, np.zeros(3, np.float32)))
 
 
 @pytest.mark.parametrize("unit", [1e-9, 1e-7, 1e4])
