@@ -87,7 +87,10 @@ class FitOptions(eqx.Module):
       with the scale from the data, `w = (1 - (d / (c s))^2)^2` for d < c s, else 0, c = 4.685,
       s = 1.4826 median(d) (the MAD about the surface, floored at 1e-4 of the rms radius of the points).
       The weights multiply the squared residuals (eq. 9) of the next round and are returned in
-      `Fit.weight`. Off by default (the segmentation's kernel calls and `fit()`).
+      `Fit.weight`. Gradients with respect to the points hold the final weights fixed: they are the
+      derivatives of the weighted fit, not of the weighting, which jumps as a point crosses c s
+      (finite differences of a robust fit do not converge). Off by default (the segmentation's
+      kernel calls and `fit()`).
     """
 
     max_steps: int = eqx.field(static=True, default=15)
@@ -280,6 +283,9 @@ def _checked_points(xp, points, mask, dtype):
         points = points[None]
     K, N = points.shape[:2]
     if mask is not None:
+        mask_dtype = jnp.dtype(mask.dtype if _is_traced(mask) else np.asarray(mask).dtype)
+        if mask_dtype.kind not in "biu":  # a float mask of 0.5 or NaN would read as True
+            raise ValueError(f"fit: mask must be boolean (True: use the point), got dtype {mask_dtype}")
         mask = mask.astype(bool) if _is_traced(mask) else np.asarray(mask).astype(bool)
         mask = mask[None] if single else mask
         if tuple(mask.shape) != (K, N):
@@ -395,9 +401,11 @@ def fit(
     centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
     degenerate = _degenerate(xp, rel, mask)
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)
-    # On the host each problem is scaled by a power of two to a largest |coordinate| in [0.5, 1): exact
-    # in floating point, so the kernel sees the same normalised points as before at ordinary scales,
-    # and coordinates of 1e19 (whose squares overflow float32) or 1e-30 (underflow) fit alike.
+    # On the host each problem is scaled by a power of two to a largest |coordinate| in [0.5, 1) (exact
+    # in floating point; the kernel normalises again), so that coordinates of 1e19 (whose squares
+    # overflow float32) or 1e-30 (underflow) fit alike. At ordinary scales the fits move by rounding
+    # only (12 one-view problems: the same solids, costs equal to 1e-5, three of them described with
+    # their x and y axes swapped).
     p2 = _power_of_two(rel) if xp is np else None
     if p2 is not None:
         rel = rel * p2[:, None, None]

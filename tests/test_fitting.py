@@ -240,6 +240,10 @@ def test_option_and_init_types_are_checked():
         fit(pts, max_steps=2.5)
     with pytest.raises(TypeError, match="init must be a Superquadric"):
         fit(pts, init=(1.0, 1.0, 1.0))  # pyright: ignore[reportArgumentType]
+    for bad in (np.full(50, 0.5), np.full(50, np.nan), np.array(["yes"] * 50)):  # all read as True
+        with pytest.raises(ValueError, match="mask must be boolean"):
+            fit(pts, bad)
+    assert int(fit(pts, np.arange(50) < 40).num_points) == 40  # bool (and 0/1 integers) as before
 
 
 @pytest.mark.parametrize("scale", [1e-30, 1e-3, 1e19])
