@@ -259,7 +259,8 @@ def _init_fields(xp, init, K, dtype, centre, deform):
 def _array_module(points, mask, init, dtype):
     """numpy on the host, jax.numpy when any input is traced; the working dtype, checked."""
     traced = any(_is_traced(v) for v in jax.tree.leaves((points, mask, init)))
-    dtype = jnp.dtype(dtype or (points.dtype if _is_traced(points) else jnp.float32))
+    own = _is_traced(points) and jnp.dtype(points.dtype) in (jnp.float32, jnp.float64)  # else float32, as eager
+    dtype = jnp.dtype(dtype or (points.dtype if own else jnp.float32))
     if dtype not in (jnp.float32, jnp.float64):
         raise ValueError(f"fit: dtype must be float32 or float64, got {dtype}")
     if dtype == jnp.float64 and not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]

@@ -244,6 +244,11 @@ def test_option_and_init_types_are_checked():
         with pytest.raises(ValueError, match="mask must be boolean"):
             fit(pts, bad)
     assert int(fit(pts, np.arange(50) < 40).num_points) == 40  # bool (and 0/1 integers) as before
+    # integer points fit in float32 under jit as eagerly (it said "dtype must be float32 or float64,
+    # got int32", of an argument the user never passed)
+    ints = np.round(pts * 10).astype(np.int32)
+    traced = jax.jit(lambda p: fit(p, max_steps=5).superquadric.size)(ints)
+    assert traced.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(traced)))
 
 
 @pytest.mark.parametrize("scale", [1e-30, 1e-3, 1e19])
