@@ -258,13 +258,18 @@ def depth_noise_exponent(image: RangeImage, bins: int = 6) -> float:
     return float(np.clip(np.polyfit(lz, np.log(scale), 1)[0], 0.0, 2.0))
 
 
-def robust_centre(points: np.ndarray, far: float = 100.0) -> np.ndarray:
-    """The frame of the models: the mean of the points (P, 3) within `far` median radii of their median,
-    so that one far outlier (a depth pixel at 1e30) does not move it; the plain mean otherwise."""
+def bulk(points: np.ndarray, far: float = 100.0) -> np.ndarray:
+    """(P,) bool: the points (P, 3) within `far` median radii of their median (one far outlier, a depth
+    pixel at 1e30, is not among them)."""
     med = np.median(points, 0)
     r = np.linalg.norm(points - med, axis=1)
-    near = r <= far * max(float(np.median(r)), 1e-30)
-    return points[near].mean(0)
+    return r <= far * max(float(np.median(r)), 1e-30)
+
+
+def robust_centre(points: np.ndarray, far: float = 100.0) -> np.ndarray:
+    """The frame of the models: the mean of the `bulk` of the points (P, 3), so that one far outlier
+    does not move it."""
+    return points[bulk(points, far)].mean(0)
 
 
 def noise_scale(points: np.ndarray, k: float, z_ref: float) -> np.ndarray:

@@ -324,7 +324,27 @@ def _scaled_fields(fields, p2):
     """Warm-start fields (size, epsilon, rotation, translation, taper, bend) in the scaled frame."""
     size, eps, R, t, taper, bend = fields
     f = p2.astype(size.dtype)[:, None]
-    return size * f, eps, R, t * f, taper, bend / np.concatenate([f, np.ones_like(f)], -1).astype(bend.dtype)
+    return size * f, eps, R, t * f, taper, _curvature_times(bend, 1.0 / f[:, 0])
+
+
+def _curvature_times(bend, f):
+    """bend (K, 2) (curvature k in 1 / length, angle) with k times f (K,), in bend's dtype."""
+    out = np.array(bend, copy=True)
+    out[:, 0] = out[:, 0] * f
+    return out
+
+
+def _unscaled(p2, size, t, bend, cost, dist, residual) -> tuple:
+    """The kernel's outputs (scaled frame, `_power_of_two`) back in the points' units; t in float64."""
+    inv = 1.0 / p2
+    power = 3 if residual == "size_weighted" else 2  # eq. 7's f ~ sqrt(a1 a2 a3); a distance ~ length
+    return (
+        (size * inv[:, None]).astype(size.dtype),
+        t * inv[:, None],
+        _curvature_times(bend, p2).astype(bend.dtype),
+        (cost * inv**power).astype(cost.dtype),
+        (dist * inv[:, None]).astype(dist.dtype),
+    )
 
 
 def _run_kernel(xp, pts, mask, fields, options):
@@ -415,11 +435,7 @@ def fit(
     sqf, cost, conv, dist, weight, init_ok = _run_kernel(xp, rel.astype(dtype), mask, fields, options)
     size, eps, R, t, taper, bend = sqf
     if p2 is not None:
-        inv = (1.0 / p2)[:, None]
-        size, dist = (size * inv).astype(size.dtype), (dist * inv).astype(dist.dtype)
-        t = t * inv  # float64, as the centre it is added to
-        bend = (bend * np.concatenate([1.0 / inv, np.ones_like(inv)], -1)).astype(bend.dtype)  # 1 / length
-        cost = (cost * inv[:, 0] ** (3 if options.residual == "size_weighted" else 2)).astype(cost.dtype)
+        size, t, bend, cost, dist = _unscaled(p2, size, t, bend, cost, dist, options.residual)
     t = t.astype(centre.dtype) + centre
     finite_out = xp.isfinite(cost) & xp.all(xp.isfinite(size), -1) & xp.all(xp.isfinite(t), -1)
     finite_out = finite_out & xp.all(xp.isfinite(eps), -1) & xp.all(xp.isfinite(R), (-2, -1))

@@ -16,6 +16,7 @@ import numpy as np
 from .chart import NUM_PARAMS, to_world
 from .domain import (
     Domain,
+    bulk,
     cloud_domain,
     cloud_noise,
     depth_noise_exponent,
@@ -103,14 +104,10 @@ def noise_free(points, noise: float) -> bool:
     """Whether finite points (n, 3) look noise-free: their estimated `noise` is below `NOISE_FREE` of their
     extent (surface samples of a mesh). Then every rounded edge a superquadric leaves can become a part,
     and the tolerance should be given (`noise=`, about 0.004 x a part's size for a sampled cube or cylinder).
-    The extent is that of the points within 100 median radii of their median (`domain.robust_centre`'s
-    rule): one row at 1e30 made a Kinect-noisy cloud look noise-free."""
+    The extent is that of their `domain.bulk`: one row at 1e30 made a Kinect-noisy cloud look noise-free."""
     if not len(points):
         return False
-    med = np.median(points, 0)
-    r = np.linalg.norm(points - med, axis=1)
-    bulk = points[r <= 100.0 * max(float(np.median(r)), 1e-30)]
-    extent = float(np.max(np.ptp(bulk, 0)))
+    extent = float(np.max(np.ptp(points[bulk(points)], 0)))
     return extent > 0.0 and noise < NOISE_FREE * extent
 
 

@@ -181,8 +181,9 @@ def fit_one(points, mask, theta0, opts, stand_in: bool = False):
     # A problem with no valid point (a batch's empty slot) is solved on a stand-in, the unit sphere, so
     # that its fit and the adjoint's linear solve stay finite: lineax refuses NaN input, and one empty
     # problem failed the gradient of the whole batch. `fit` flags it (too few points) as before.
-    empty = ~jnp.any(mask) if stand_in else jnp.asarray(False)
+    valid = mask  # the distances below: none for a stand-in
     if stand_in:
+        empty = ~jnp.any(mask)
         pn = jnp.where(empty, _unit_sphere(points.shape[0], dtype), pn)
         mask = mask | empty
     adjoint = optx.ImplicitAdjoint(lx.AutoLinearSolver(well_posed=False))  # SVD: a sphere's pose is not unique
@@ -224,9 +225,7 @@ def fit_one(points, mask, theta0, opts, stand_in: bool = False):
         theta = theta.at[BEND.start].divide(scale)
     cost = cost * scale ** (3 if opts.residual == "size_weighted" else 2)  # f ~ sqrt(a1 a2 a3); d ~ length
     sq = to_superquadric(theta, opts.deform)
-    dist = (
-        jnp.where(mask & ~empty, distance(sq, points), 0.0) if stand_in else jnp.where(mask, distance(sq, points), 0.0)
-    )
+    dist = jnp.where(valid, distance(sq, points), 0.0)
     return theta, cost, conv, dist, weight
 
 
