@@ -201,14 +201,17 @@ def _robust_centre(xp, points, mask, far_factor):
     """Median centre (K, 3) of the valid points, the points about it, and the mask without far points.
 
     A point is far when its distance from the centre exceeds `far_factor` x the median distance
-    (None: none is). Masked-out rows become 0 before any arithmetic (no NaN reaches a gradient).
+    (None: none is), measured on the points scaled by `_power_of_two` (exact: the same test, without
+    the overflow of squares of 1e19 in float32). Masked-out rows become 0 before any arithmetic (no
+    NaN reaches a gradient).
     """
     centre = _nanmedian(xp, xp.where(mask[..., None], points, xp.nan), 1)
     centre = xp.where(xp.isfinite(centre), centre, 0.0)
     rel = xp.where(mask[..., None], points, 0.0) - xp.where(mask[..., None], centre[:, None], 0.0)
     far = xp.zeros(mask.shape, bool)
     if far_factor is not None:
-        q = jax.lax.stop_gradient(rel) if xp is jnp else rel
+        q = rel * _power_of_two(xp, rel)[:, None, None]
+        q = jax.lax.stop_gradient(q) if xp is jnp else q
         r = xp.sqrt(xp.sum(q * q, -1))
         med = _nanmedian(xp, xp.where(mask, r, xp.nan), 1)
         far = mask & ~(r <= far_factor * xp.where(xp.isfinite(med), med, 0.0)[:, None])
@@ -312,37 +315,43 @@ def _checked_points(xp, points, mask, dtype):
     return points, mask, single
 
 
-def _power_of_two(rel):
-    """(K,) float64 powers of two 2^k that bring each problem's largest |coordinate| (K, N, 3) into
-    [0.5, 1) (1 where all are 0)."""
-    m = np.max(np.abs(rel), axis=(1, 2))
-    _, e = np.frexp(np.where(m > 0, m, 1.0))
-    return np.ldexp(1.0, -e)
+def _power_of_two(xp, rel):
+    """(K,) powers of two 2^-e that bring each problem's largest |coordinate| (K, N, 3) into [0.5, 1)
+    (1 where all are 0), in rel's dtype (float64 on the host); constants under differentiation.
+
+    Scaling by them is exact in floating point, so coordinates of 1e19 (whose squares overflow
+    float32) and of 1e-30 (whose squares underflow) fit alike, eagerly and under `jax.jit` / `grad`."""
+    q = jax.lax.stop_gradient(rel) if xp is jnp else rel
+    m = xp.max(xp.abs(q), axis=(1, 2))
+    _, e = xp.frexp(xp.where(m > 0, m, 1.0))
+    info = xp.finfo(rel.dtype)
+    return xp.ldexp(xp.ones_like(m), xp.clip(-e, info.minexp + 1, info.maxexp - 1))
 
 
-def _scaled_fields(fields, p2):
+def _scaled_fields(xp, fields, p2):
     """Warm-start fields (size, epsilon, rotation, translation, taper, bend) in the scaled frame."""
     size, eps, R, t, taper, bend = fields
     f = p2.astype(size.dtype)[:, None]
-    return size * f, eps, R, t * f, taper, _curvature_times(bend, 1.0 / f[:, 0])
+    return size * f, eps, R, t * f, taper, _curvature_times(xp, bend, 1.0 / f[:, 0])
 
 
-def _curvature_times(bend, f):
+def _curvature_times(xp, bend, f):
     """bend (K, 2) (curvature k in 1 / length, angle) with k times f (K,), in bend's dtype."""
-    out = np.array(bend, copy=True)
-    out[:, 0] = out[:, 0] * f
-    return out
+    return xp.stack([bend[:, 0] * f, bend[:, 1]], -1).astype(bend.dtype)
 
 
-def _unscaled(p2, size, t, bend, cost, dist, residual) -> tuple:
-    """The kernel's outputs (scaled frame, `_power_of_two`) back in the points' units; t in float64."""
+def _unscaled(xp, p2, size, t, bend, cost, dist, residual) -> tuple:
+    """The kernel's outputs (scaled frame, `_power_of_two`) back in the points' units (t in p2's
+    dtype: float64 on the host)."""
     inv = 1.0 / p2
     power = 3 if residual == "size_weighted" else 2  # eq. 7's f ~ sqrt(a1 a2 a3); a distance ~ length
+    for _ in range(power):  # a factor at a time: inv**2 overflows float32 where cost * inv**2 does not
+        cost = cost * inv
     return (
         (size * inv[:, None]).astype(size.dtype),
         t * inv[:, None],
-        _curvature_times(bend, p2).astype(bend.dtype),
-        (cost * inv**power).astype(cost.dtype),
+        _curvature_times(xp, bend, p2),
+        cost.astype(size.dtype),
         (dist * inv[:, None]).astype(dist.dtype),
     )
 
@@ -398,8 +407,8 @@ def fit(
     **Returns:** a `Fit` (parameters, cost, per-point distances and weights `(K, N)`, converged flags, status).
 
     The points are centred on their median in float64 on the host (numpy) before the cast to `dtype`,
-    so far-away coordinates lose nothing to float32, and scaled by a power of two (exact), so that
-    coordinates from 1e-30 to 1e19 fit alike in float32; then padded (numpy) to power-of-two buckets (N at
+    so far-away coordinates lose nothing to float32, and scaled by a power of two (exact; under tracing too), so
+    that coordinates from 1e-30 to 1e19 fit alike in float32; then padded (numpy) to power-of-two buckets (N at
     least 128), so one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
     differentiation at the optimum; the same steps in jax.numpy). When JAX has several CPU devices
     (`parallel`: `jax_num_cpu_devices`) and they divide the padded batch, the
@@ -420,22 +429,20 @@ def fit(
     points, mask, single = _checked_points(xp, points, mask, dtype)
     K = mask.shape[0]
     centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
+    # Each problem is scaled by a power of two to a largest |coordinate| in [0.5, 1) (exact in floating
+    # point; the kernel normalises again), eagerly and under tracing alike, so that coordinates of 1e19
+    # (whose squares overflow float32) or 1e-30 (underflow) fit alike. At ordinary scales the fits move
+    # by rounding only (12 one-view problems: the same solids, costs equal to 1e-5, three of them
+    # described with their x and y axes swapped).
+    p2 = _power_of_two(xp, rel)
+    rel = rel * p2[:, None, None]
     degenerate = _degenerate(xp, rel, mask)
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)
-    # On the host each problem is scaled by a power of two to a largest |coordinate| in [0.5, 1) (exact
-    # in floating point; the kernel normalises again), so that coordinates of 1e19 (whose squares
-    # overflow float32) or 1e-30 (underflow) fit alike. At ordinary scales the fits move by rounding
-    # only (12 one-view problems: the same solids, costs equal to 1e-5, three of them described with
-    # their x and y axes swapped).
-    p2 = _power_of_two(rel) if xp is np else None
-    if p2 is not None:
-        rel = rel * p2[:, None, None]
-        if fields is not None:
-            fields = _scaled_fields(fields, p2)
+    if fields is not None:
+        fields = _scaled_fields(xp, fields, p2)
     sqf, cost, conv, dist, weight, init_ok = _run_kernel(xp, rel.astype(dtype), mask, fields, options)
     size, eps, R, t, taper, bend = sqf
-    if p2 is not None:
-        size, t, bend, cost, dist = _unscaled(p2, size, t, bend, cost, dist, options.residual)
+    size, t, bend, cost, dist = _unscaled(xp, p2, size, t, bend, cost, dist, options.residual)
     t = t.astype(centre.dtype) + centre
     finite_out = xp.isfinite(cost) & xp.all(xp.isfinite(size), -1) & xp.all(xp.isfinite(t), -1)
     finite_out = finite_out & xp.all(xp.isfinite(eps), -1) & xp.all(xp.isfinite(R), (-2, -1))

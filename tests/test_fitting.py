@@ -251,16 +251,20 @@ def test_option_and_init_types_are_checked():
     assert traced.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(traced)))
 
 
+def _noisy_ellipsoid(truth, n=300, seed=0):
+    """(n, 3) points on an axis-aligned ellipsoid of half-sizes `truth` at (3, 1, 2), noise 0.005."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True) * truth + [3.0, 1.0, 2.0] + 0.005 * rng.standard_normal((n, 3))
+
+
 @pytest.mark.parametrize("scale", [1e-30, 1e-3, 1e19])
 def test_a_fit_does_not_depend_on_the_scale_of_the_coordinates(scale):
     """Float32 coordinates of 1e19 (whose squares overflow) gave the fallback sphere, NONFINITE, and
     1e-30 a wrong fit flagged converged: each problem is now scaled on the host by a power of two, so
     the kernel sees the same normalised points at every scale. A warm start is scaled with them."""
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((300, 3))
     truth = np.array([1.0, 0.7, 0.5])
-    pts = u / np.linalg.norm(u, axis=1, keepdims=True) * truth + [3.0, 1.0, 2.0] + 0.005 * rng.standard_normal((300, 3))
-    pts = pts * scale
+    pts = _noisy_ellipsoid(truth) * scale
     res = fit(pts.astype(np.float32))
     assert int(res.status) == 0 and bool(res.converged)
     np.testing.assert_allclose(np.sort(np.asarray(res.superquadric.size)) / scale, np.sort(truth), rtol=1e-2)
@@ -268,3 +272,24 @@ def test_a_fit_does_not_depend_on_the_scale_of_the_coordinates(scale):
     init = Superquadric.create(tuple(truth * scale * 1.1), translation=tuple(np.array([3.0, 1.0, 2.0]) * scale))
     warm = fit(pts.astype(np.float32), init=init)
     np.testing.assert_allclose(np.sort(np.asarray(warm.superquadric.size)) / scale, np.sort(truth), rtol=1e-2)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e19])
+def test_a_traced_fit_and_its_gradient_do_not_depend_on_the_scale(scale):
+    """The power-of-two scaling ran on the host only: under `jax.jit` coordinates of 1e19 gave the
+    fallback sphere (NONFINITE) and their gradient a lineax error ("non-finite input"), and 1e-30 a
+    wrong fit. Traced, the fit now equals the eager one, and d(sizes)/d(points), which has no unit,
+    is the gradient at scale 1."""
+    pts = _noisy_ellipsoid(np.array([1.0, 0.7, 0.5])).astype(np.float32)
+    big = (pts.astype(np.float64) * scale).astype(np.float32)
+    traced = jax.jit(fit)(big)
+    eager = fit(big)
+    assert int(traced.status) == 0 and bool(traced.converged)
+    np.testing.assert_allclose(np.asarray(traced.superquadric.size), np.asarray(eager.superquadric.size), rtol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(traced.superquadric.translation), np.asarray(eager.superquadric.translation), rtol=1e-4
+    )
+    grad = jax.grad(lambda p: jnp.sum(fit(p).superquadric.size))
+    g_big, g_one = np.asarray(grad(big)), np.asarray(grad(pts))
+    assert np.all(np.isfinite(g_big))
+    np.testing.assert_allclose(g_big, g_one, atol=2e-3 * np.abs(g_one).max())
