@@ -407,7 +407,7 @@ def suite_loop(args, results):
     sp = [scipy_fit(d[1][0]) for d in data[:S]]
     sp_rate = S / (time.perf_counter() - t0)
     sp_iou = iou(truth[:S], batch_sq([x[0] for x in sp]))
-    buckets = sorted({sqjax.padding.bucket(int(m)) for m in ns})
+    buckets = sorted({sqjax.padding.fit_points(int(m), sqjax.FitOptions().screen_points) for m in ns})
     row = {
         "suite": "loop",
         "problems": M,

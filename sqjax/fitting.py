@@ -17,7 +17,7 @@ import numpy as np
 from . import parallel
 from .chart import NUM_PARAMS, num_params
 from .numerics import is_real
-from .padding import bucket
+from .padding import bucket, fit_points
 from .solver import fit_kernel, fit_sharded
 from .status import FAILED, status_flags
 from .superquadric import EPSILON_RANGE, Superquadric
@@ -357,11 +357,12 @@ def _unscaled(xp, p2, size, t, bend, cost, dist, residual) -> tuple:
 
 
 def _run_kernel(xp, pts, mask, fields, options):
-    """Pad (K, N) problems to power-of-two buckets (N at least 128: small problems share one kernel;
-    extra problems are copies of problem 0), call the kernel (split over the local CPU devices when
-    they divide the batch) and crop its outputs back to (K, N)."""
+    """Pad (K, N) problems to power-of-two buckets (`padding.fit_points` rows: 128, then one size for
+    N up to 1024 under the multistart; extra problems are copies of problem 0), call the kernel (split
+    over the local CPU devices when they divide the batch) and crop its outputs back to (K, N)."""
     K, N = mask.shape
-    Kb, Nb = bucket(K, 1), bucket(N, 128)
+    screened = options.multistart and fields is None and not options.deform  # see `padding.fit_points`
+    Kb, Nb = bucket(K, 1), fit_points(N, options.screen_points if screened else None)
     pts = xp.pad(pts, ((0, Kb - K), (0, Nb - N), (0, 0)))
     msk = xp.pad(mask, ((0, Kb - K), (0, Nb - N)))
     if Kb > K:
@@ -408,8 +409,9 @@ def fit(
 
     The points are centred on their median in float64 on the host (numpy) before the cast to `dtype`,
     so far-away coordinates lose nothing to float32, and scaled by a power of two (exact; under tracing too), so
-    that coordinates from 1e-30 to 1e19 fit alike in float32; then padded (numpy) to power-of-two buckets (N at
-    least 128), so one compile serves every N of a bucket. Differentiable with respect to `points` (implicit
+    that coordinates from 1e-30 to 1e19 fit alike in float32; then padded (numpy) to power-of-two buckets
+    (`padding.fit_points`: 128 rows, then one size for every N up to 1024), so one compile serves every
+    N of a bucket. Differentiable with respect to `points` (implicit
     differentiation at the optimum; the same steps in jax.numpy). When JAX has several CPU devices
     (`parallel`: `jax_num_cpu_devices`) and they divide the padded batch, the
     problems are split between them: the same code per problem, with results equal to rounding (8 problems

@@ -12,6 +12,7 @@ import numpy as np
 
 import sqjax.initial as initial
 import sqjax.lm as lm
+import sqjax.padding as padding
 import sqjax.solver as solver
 from sqjax.fitting import FitOptions, fit
 
@@ -62,6 +63,22 @@ def test_kernel_traces_once_per_bucket(monkeypatch):
     for n in (40, 50, 64):  # growth steps inside one bucket (128): one trace
         fit(pts[:, :n], options=opts)
     fit(pts[:, :60], mask=np.broadcast_to(np.arange(60) < 50, (2, 60)), options=opts)
+    assert eqx.debug.get_num_traces(counted) == 1
+
+
+def test_a_screened_multistart_serves_n_from_129_to_1024_with_one_kernel(monkeypatch):
+    """Issue 14 (a user's loop over N): the multistart's work is its screening on 256 points, so every
+    N from 129 to 4 x 256 pads to 1024 rows (`padding.fit_points`) and traces one kernel, where
+    powers of two traced three (256, 512, 1024). Warm starts and unscreened fits keep powers of two."""
+    assert [padding.fit_points(n, 256) for n in (100, 128, 129, 300, 1024, 1025)] == [128] * 2 + [1024] * 3 + [2048]
+    assert [padding.fit_points(n, None) for n in (129, 300, 1024)] == [256, 512, 1024]
+    counted = eqx.debug.assert_max_traces(solver.map_problems, max_traces=None)
+    monkeypatch.setattr(solver, "map_problems", counted)
+    opts = FitOptions(max_steps=2, epsilon_starts=((1.0, 1.0),))  # a fresh compile-cache key for this test
+    pts = one_view_batch(1, 1000, seed=3)[0]
+    for n in (130, 300, 700, 1000):
+        r = fit(pts[:n], options=opts)
+        assert r.distance.shape == (n,) and int(r.num_points) == n
     assert eqx.debug.get_num_traces(counted) == 1
 
 
