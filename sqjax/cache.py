@@ -164,6 +164,7 @@ def set_kernel_dir(path) -> Path | None:
     calls it; without JAX's compilation cache the modules would still be compiled on every run."""
     global _KERNEL_DIR
     _LOADED.clear()
+    _FOLDER.clear()
     _KERNEL_DIR = None if path is None else Path(os.fspath(path))
     return _KERNEL_DIR
 
@@ -184,10 +185,17 @@ def _fingerprint() -> str:
     return h.hexdigest()[:20]
 
 
+_FOLDER: dict = {}
+"""The kernel folder's path once `_folder` has made it (a file-system call per kernel call saved)."""
+
+
 def _folder() -> Path | None:
-    """This fingerprint's folder (created; older fingerprints beyond `_KEEP_VERSIONS` removed)."""
+    """This fingerprint's folder (created once per process and kernel folder; older fingerprints
+    beyond `_KEEP_VERSIONS` removed)."""
     if _KERNEL_DIR is None:
         return None
+    if _KERNEL_DIR in _FOLDER:
+        return _FOLDER[_KERNEL_DIR]
     folder = _KERNEL_DIR / _fingerprint()
     if not folder.is_dir():
         try:
@@ -199,6 +207,7 @@ def _folder() -> Path | None:
                 shutil.rmtree(old, ignore_errors=True)
         except OSError:
             return None
+    _FOLDER[_KERNEL_DIR] = folder
     return folder
 
 
@@ -241,13 +250,6 @@ def release_if_crowded() -> bool:
     return True
 
 
-def _is_array(x) -> bool:
-    import jax
-    import numpy as np
-
-    return isinstance(x, (jax.Array, np.ndarray, np.generic))
-
-
 def persistent_kernel(fn):
     """`fn` (a jitted function of arrays, `None`s and option modules) whose traced and lowered form is
     kept on disk while the kernel folder is set (`enable_compilation_cache`). The arrays among the
@@ -261,22 +263,38 @@ def persistent_kernel(fn):
     # the arguments are scanned for tracers here once: a `kernel_jit` is called through its jitted form
     jitted = fn.jitted if isinstance(fn, kernel_jit) else (lambda top=True: fn)
 
+    arrays = (jax.Array, np.ndarray, np.generic)
+    keys: dict = {}  # signature -> key: the reprs and the hash once per signature, not per call
+
+    def key_of(leaves, tree, dynamic, x64) -> str:
+        spec = (
+            name,
+            x64,
+            repr(tree),
+            [(v.shape, str(v.dtype)) if i in dynamic else repr(v) for i, v in enumerate(leaves)],
+        )
+        return hashlib.sha256(repr(spec).encode()).hexdigest()[:32]
+
     @functools.wraps(fn, updated=())
     def call(*args):
         leaves, tree = jax.tree.flatten(args)
         if any(isinstance(v, jax.core.Tracer) for v in leaves):  # pyright: ignore[reportAttributeAccessIssue]
             return jitted(False)(*args)
         folder = _folder()
-        dynamic = [i for i, v in enumerate(leaves) if _is_array(v)]
-        inputs = [leaves[i] for i in dynamic]
+        dynamic = {i for i, v in enumerate(leaves) if isinstance(v, arrays)}
+        inputs = [leaves[i] for i in sorted(dynamic)]
         x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64  # changes what constants trace to
-        spec = (
-            name,
-            x64,
-            repr(tree),
-            [repr(v) if i not in dynamic else (v.shape, str(v.dtype)) for i, v in enumerate(leaves)],
+        # a float static leaf by its repr: -0.0 == 0.0, yet they trace to different constants
+        sig = tuple(
+            (v.shape, v.dtype) if i in dynamic else (type(v), repr(v) if isinstance(v, float) else v)
+            for i, v in enumerate(leaves)
         )
-        key = hashlib.sha256(repr(spec).encode()).hexdigest()[:32]
+        try:
+            key = keys.get((x64, tree, sig))
+        except TypeError:  # an unhashable static leaf: its key from the reprs, every call
+            key, sig = key_of(leaves, tree, dynamic, x64), None
+        if key is None:
+            key = keys[(x64, tree, sig)] = key_of(leaves, tree, dynamic, x64)
         if key not in _SEEN:  # a kernel new to the process (or released) compiles or loads: room for it
             release_if_crowded()
             _SEEN.add(key)
@@ -285,7 +303,7 @@ def persistent_kernel(fn):
         if key not in _LOADED:
             options = fn.options() if isinstance(fn, kernel_jit) else {}
             _LOADED[key] = _load(folder / f"{key}.jaxexport", options) or _export(
-                fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport", options
+                fn, leaves, tree, sorted(dynamic), inputs, folder / f"{key}.jaxexport", options
             )
         kernel = _LOADED[key]
         return jitted()(*args) if kernel is None else kernel(*inputs)

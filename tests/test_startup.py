@@ -153,6 +153,23 @@ def test_a_kept_kernel_gives_the_traced_kernels_results_without_tracing(kernel_d
             np.testing.assert_array_equal(a, b)
 
 
+def test_a_kept_kernel_s_key_is_reused_per_signature_and_tells_static_values_apart(kernel_dir):
+    """The key of a call (the reprs of its tree and static leaves, hashed) is made once per signature
+    (80-120 us a call before, about 10 us now); static leaves that compare equal but trace to
+    different constants (0.0 and -0.0, 3 and 3.0) keep keys of their own."""
+    import jax
+
+    from sqjax import cache
+
+    kernel = cache.persistent_kernel(jax.jit(lambda x, c: x * c))
+    x = np.ones(3, np.float32)
+    out = [np.asarray(kernel(x, c)) for c in (2.0, 2.0, -0.0, 0.0, 3, 3.0)]
+    assert len(list(kernel_dir.rglob("*.jaxexport"))) == 5  # the repeated 2.0 reuses its key
+    np.testing.assert_array_equal(out[0], 2 * x)
+    assert np.all(np.signbit(out[2])) and not np.any(np.signbit(out[3]))
+    assert out[4].dtype == out[5].dtype == np.float32
+
+
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="memory maps are counted through Linux's /proc")
 def test_kernels_are_let_go_before_the_memory_maps_run_out(kernel_dir, monkeypatch):
     """Each compiled CPU kernel holds about a thousand memory maps; when a process nears its limit,
