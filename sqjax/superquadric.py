@@ -14,6 +14,8 @@ renderer.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -22,7 +24,7 @@ import numpy as np
 from . import rotation as so3
 from .cache import kernel_jit
 from .deformation import bend_points, taper_points, unbend, untaper
-from .numerics import eps, to_device
+from .numerics import eps, is_real, to_device
 
 EPSILON_RANGE = (0.1, 1.9)
 """Range the shape exponents e1, e2 are kept in."""
@@ -366,6 +368,30 @@ def _per_point(fn, sq: Superquadric, points):
 # the public functions of a superquadric and world points (..., 3)
 
 
+def _point_function(fn):
+    """A public function of (sq, points) with its arguments checked first: points as an array (nested
+    lists of rows too) of real numbers, shape (..., 3); errors that name the function and the problem
+    instead of JAX's ("unsupported operand type(s) for -: 'list' and 'DynamicJaxprTracer'")."""
+    name = getattr(fn, "__name__", "function")
+
+    @functools.wraps(fn)
+    def checked(sq, points):
+        if not isinstance(sq, Superquadric):
+            raise TypeError(f"{name}: the first argument must be a Superquadric, got {type(sq).__name__}")
+        if not isinstance(points, jax.Array):
+            try:
+                points = np.asarray(points)
+            except ValueError as err:  # ragged rows
+                raise ValueError(f"{name}: points must be an array of shape (..., 3): {err}") from None
+            if not is_real(points.dtype):
+                raise ValueError(f"{name}: points must be real numbers, got dtype {points.dtype}")
+        if points.ndim == 0 or points.shape[-1] != 3:
+            raise ValueError(f"{name}: points must have shape (..., 3), got {tuple(points.shape)}")
+        return fn(sq, points)
+
+    return checked
+
+
 @kernel_jit
 def _missing(points, value):
     """`value` (...) with NaN where a point (..., 3) has a NaN or infinite coordinate: a missing point has
@@ -377,6 +403,7 @@ def _nonfinite(points):
     return ~jnp.all(jnp.isfinite(points), -1)
 
 
+@_point_function
 def inside_outside(sq: Superquadric, points):
     """F of world points (..., 3) -> (...): < 1 inside, 1 on the surface, > 1 outside (eq. 5); NaN for
     a point with a NaN or infinite coordinate."""
@@ -384,6 +411,7 @@ def inside_outside(sq: Superquadric, points):
     return _missing(points, jnp.exp(log_inside_outside(x, jnp.log(sq.size), sq.epsilon)))
 
 
+@_point_function
 @kernel_jit
 def contains(sq: Superquadric, points):
     """Inside test, (..., 3) -> bool (...); False for a point with a NaN or infinite coordinate."""
@@ -391,6 +419,7 @@ def contains(sq: Superquadric, points):
     return (log_inside_outside(x, jnp.log(sq.size), sq.epsilon) <= 0.0) & ~_nonfinite(points)
 
 
+@_point_function
 @kernel_jit
 def residual(sq: Superquadric, points):
     """Size-weighted residual f = sqrt(a1 a2 a3) (F - 1) (eq. 7), (..., 3) -> (...); NaN for a point
@@ -400,6 +429,7 @@ def residual(sq: Superquadric, points):
     return _missing(points, f)
 
 
+@_point_function
 @kernel_jit
 def distance(sq: Superquadric, points):
     """Approximate Euclidean distance to the surface, |F - 1| / |grad F| (eq. 10), (..., 3) -> (...).
@@ -410,6 +440,7 @@ def distance(sq: Superquadric, points):
     return _missing(points, _per_point(lambda *a: frame_distance(*a, of_logs=distance_from_log), sq, points))
 
 
+@_point_function
 @kernel_jit
 def signed_distance(sq: Superquadric, points):
     """The residual `fit` minimises (`FitOptions.residual="distance"`), (..., 3) -> (...): the signed
@@ -430,6 +461,7 @@ def _safe_norm(v):
     return jnp.where(nz[..., 0], m[..., 0] * jnp.sqrt(jnp.where(nz[..., 0], s2, 1.0)), 0.0)
 
 
+@_point_function
 @kernel_jit
 def radial_distance(sq: Superquadric, points):
     """Distance along the ray from the model centre, |x| |1 - F^(-1/2)| in the model frame, (..., 3) -> (...).

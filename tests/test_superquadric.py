@@ -139,6 +139,28 @@ def test_mesh_is_watertight(size, eps, extra):
     assert mesh.volume > 0
 
 
+def test_point_functions_take_rows_as_lists_and_name_bad_points():
+    """`distance(sq, [[...], ...])` raised JAX's "unsupported operand type(s) for -: 'list' and
+    'DynamicJaxprTracer'". Nested lists of rows are points like an array; a wrong shape, ragged rows,
+    strings or a first argument that is not a Superquadric get an error that names the function."""
+    sq = Superquadric.create((1.0, 0.6, 1.4), (0.5, 0.8))
+    rows = [[0.2, 0.1, 0.0], [2.0, 0.0, 0.0]]
+    for fn in (inside_outside, residual, distance, signed_distance, radial_distance, contains):
+        np.testing.assert_array_equal(np.asarray(fn(sq, rows)), np.asarray(fn(sq, np.asarray(rows, np.float32))))
+    for bad, message in (
+        ([[1.0, 2.0], [3.0, 4.0]], r"distance: points must have shape \(\.\.\., 3\), got \(2, 2\)"),
+        ([[1.0, 2.0, 3.0], [1.0, 2.0]], "distance: points must be an array of shape"),
+        (np.array(["a", "b", "c"]), "distance: points must be real numbers"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            distance(sq, bad)
+    with pytest.raises(TypeError, match="distance: the first argument must be a Superquadric"):
+        distance(rows, np.zeros((2, 3)))  # pyright: ignore[reportArgumentType]
+    # under jit and grad as before
+    g = jax.grad(lambda p: jnp.sum(distance(sq, p)))(jnp.asarray(rows))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
 def test_a_missing_point_has_no_value():
     """A point with a NaN coordinate (missing data) gets NaN from F, the residual and the distance, and
     is not inside; the safe operands inside the functions gave it F = 2e-20, "inside"."""
