@@ -103,7 +103,9 @@ class RangeImage:
     """A depth image `(H, W)` with its camera, and optionally ground-truth labels `(H, W)` int.
 
     `points` `(H, W, 3)` are in the camera frame (NaN where missing); `valid` `(H, W)` marks finite,
-    non-zero depths. Labels: 0 = none / unknown, > 0 = a part. `colors`: optional `(H, W, 3)` uint8
+    non-zero depths. A pinhole camera refuses negative depths (behind the camera) unless the points
+    are given (`points_override`); an orthographic depth is a z coordinate of any sign.
+    Labels: 0 = none / unknown, > 0 = a part. `colors`: optional `(H, W, 3)` uint8
     RGB registered to the depth (an RGB-D frame's colour image, a PCD's rgb / rgba field); figures use it.
     """
 
@@ -123,6 +125,12 @@ class RangeImage:
             raise ValueError(f"RangeImage: camera must be a PinholeCamera or OrthographicCamera, got {self.camera!r}")
         depth = depth.astype(np.float32 if depth.dtype != np.float64 else np.float64)
         depth = np.where(np.isfinite(depth) & (depth != 0), depth, np.nan)
+        behind = int(np.sum(depth < 0))  # NaN compares False
+        if behind and isinstance(self.camera, PinholeCamera) and self.points_override is None:
+            raise ValueError(
+                f"RangeImage: {behind} of {depth.size} depths are negative; a pinhole camera sees depths > 0 "
+                "(mark missing pixels with 0 or NaN)"
+            )
         object.__setattr__(self, "depth", depth)
         if self.labels is not None:
             labels = np.asarray(self.labels)

@@ -158,6 +158,19 @@ def test_bad_depth(depth):
         RangeImage(depth, CAMERAS["pinhole"])
 
 
+def test_negative_depths_are_refused_by_a_pinhole_camera_only():
+    """A negative depth back-projected through a pinhole lands behind the camera, mirrored; it was
+    accepted silently. An orthographic image's depth is a z coordinate (negative is fine), and an
+    organised cloud's own points (`points_override`) are used as given."""
+    depth = random_depth()
+    depth[3, 4], depth[5, 6] = -1.0, np.nan
+    with pytest.raises(ValueError, match="RangeImage: 1 of 1200 depths are negative"):
+        RangeImage(depth, CAMERAS["pinhole"])
+    assert RangeImage(depth, CAMERAS["ortho"]).points[3, 4, 2] == -1.0
+    pts = CAMERAS["pinhole"].back_project(np.abs(depth))
+    assert RangeImage(depth, CAMERAS["pinhole"], points_override=pts).valid.sum() == 1199
+
+
 def test_bad_labels_points_and_step():
     cam = CAMERAS["pinhole"]
     with pytest.raises(ValueError, match="labels shape"):
