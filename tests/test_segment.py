@@ -428,8 +428,12 @@ def test_a_closed_cloud_is_not_left_in_pieces():
     assert len(seg.parts) == 2
     for truth, part in zip((sphere, box), sorted(seg.parts, key=lambda q: -float(q.superquadric.translation[2]))):
         assert volume_iou(truth, part.superquadric, n=4000) > 0.9
-    for half in (seg.labels[:4000], seg.labels[4000:]):
-        assert np.bincount(half).max() >= 0.97 * 4000
+    # Where the sphere sits on the box, points within a few noise widths of the contact go to either
+    # part, as rounding decides (59-123 of the sphere's under input scalings of 1 + 1e-6 .. 1e-5): a
+    # piece would lie elsewhere. So every point off its half's label lies at the contact (z = -0.1).
+    for half, p in ((seg.labels[:4000], pts[:4000]), (seg.labels[4000:], pts[4000:])):
+        off = half != np.bincount(half).argmax()
+        assert off.mean() <= 0.05 and np.all(np.abs(p[off, 2] + 0.1) <= 5 * 0.002)
 
 
 def test_a_cloud_keeps_two_coplanar_slabs_that_do_not_touch_apart():
