@@ -281,8 +281,8 @@ def persistent_kernel(fn):
         if any(isinstance(v, jax.core.Tracer) for v in leaves):  # pyright: ignore[reportAttributeAccessIssue]
             return jitted(False)(*args)
         folder = _folder()
-        dynamic = {i for i, v in enumerate(leaves) if isinstance(v, arrays)}
-        inputs = [leaves[i] for i in sorted(dynamic)]
+        dynamic = [i for i, v in enumerate(leaves) if isinstance(v, arrays)]  # a handful: a list suffices
+        inputs = [leaves[i] for i in dynamic]
         x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64  # changes what constants trace to
         # a float static leaf by its repr: -0.0 == 0.0, yet they trace to different constants
         sig = tuple(
@@ -303,7 +303,7 @@ def persistent_kernel(fn):
         if key not in _LOADED:
             options = fn.options() if isinstance(fn, kernel_jit) else {}
             _LOADED[key] = _load(folder / f"{key}.jaxexport", options) or _export(
-                fn, leaves, tree, sorted(dynamic), inputs, folder / f"{key}.jaxexport", options
+                fn, leaves, tree, dynamic, inputs, folder / f"{key}.jaxexport", options
             )
         kernel = _LOADED[key]
         return jitted()(*args) if kernel is None else kernel(*inputs)

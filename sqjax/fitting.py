@@ -140,6 +140,12 @@ class FitOptions(eqx.Module):
         """Starting candidates per problem in the first stage (without `init`)."""
         return 3 * len(self.starts) * len(self.epsilon_starts) if self.multistart else 1
 
+    def screening(self, warm: bool = False) -> int | None:
+        """Points the multistart screens its starts on; None where nothing is screened (a warm start,
+        `deform`, no multistart, `screen_points=None`). `solver.map_problems` sizes its chunks and
+        `padding.fit_points` its rows by it."""
+        return None if warm or not self.multistart or self.deform else self.screen_points
+
     def point_iterations(self, n: int) -> int:
         """Residual-and-Jacobian evaluations of one problem padded to `n` points (points x steps x candidates)."""
         if not self.multistart:
@@ -202,8 +208,9 @@ def _robust_centre(xp, points, mask, far_factor):
 
     A point is far when its distance from the centre exceeds `far_factor` x the median distance
     (None: none is), measured on the points scaled by `_power_of_two` (exact: the same test, without
-    the overflow of squares of 1e19 in float32). Masked-out rows become 0 before any arithmetic (no
-    NaN reaches a gradient).
+    the overflow of squares of 1e19 in float32). `fit` scales the kept points again: the scale of all of
+    them is set by the far ones (one row at 1e30 would leave the rest at 1e-30, whose squares
+    underflow). Masked-out rows become 0 before any arithmetic (no NaN reaches a gradient).
     """
     centre = _nanmedian(xp, xp.where(mask[..., None], points, xp.nan), 1)
     centre = xp.where(xp.isfinite(centre), centre, 0.0)
@@ -361,8 +368,7 @@ def _run_kernel(xp, pts, mask, fields, options):
     N up to 1024 under the multistart; extra problems are copies of problem 0), call the kernel (split
     over the local CPU devices when they divide the batch) and crop its outputs back to (K, N)."""
     K, N = mask.shape
-    screened = options.multistart and fields is None and not options.deform  # see `padding.fit_points`
-    Kb, Nb = bucket(K, 1), fit_points(N, options.screen_points if screened else None)
+    Kb, Nb = bucket(K, 1), fit_points(N, options.screening(warm=fields is not None))
     pts = xp.pad(pts, ((0, Kb - K), (0, Nb - N), (0, 0)))
     msk = xp.pad(mask, ((0, Kb - K), (0, Nb - N)))
     if Kb > K:
@@ -430,13 +436,13 @@ def fit(
         raise ValueError(f"fit: noise must be a finite number > 0 or None, got {noise}")
     points, mask, single = _checked_points(xp, points, mask, dtype)
     K = mask.shape[0]
-    centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
     # Each problem is scaled by a power of two to a largest |coordinate| in [0.5, 1) (exact in floating
     # point; the kernel normalises again), eagerly and under tracing alike, so that coordinates of 1e19
     # (whose squares overflow float32) or 1e-30 (underflow) fit alike. At ordinary scales the fits move
     # by rounding only (12 one-view problems: the same solids, costs equal to 1e-5, three of them
     # described with their x and y axes swapped).
-    p2 = _power_of_two(xp, rel)
+    centre, rel, mask, far = _robust_centre(xp, points, mask, far_factor)
+    p2 = _power_of_two(xp, rel)  # of the kept points (see `_robust_centre`)
     rel = rel * p2[:, None, None]
     degenerate = _degenerate(xp, rel, mask)
     fields = None if init is None else _init_fields(xp, init, K, dtype, centre, options.deform)

@@ -250,8 +250,8 @@ def map_problems(points, mask, theta0, opts, stand_in: bool = False):
         one = lambda p, m, t: fit_one(p, m, t, opts, stand_in)
         return jax.vmap(one, in_axes=(0, 0, None if theta0 is None else 0))(points, mask, theta0)
     multistart = theta0 is None and opts.multistart  # its candidates run side by side on the screened points
-    sub = opts.screen_points  # the deformed rounds run on every point, and so does a warm start
-    screened = N if sub is None or not multistart or opts.deform else min(N, sub)
+    screen = opts.screening(warm=theta0 is not None)  # the deformed rounds run on every point, as a warm start
+    screened = N if screen is None else min(N, screen)
     chunk = fit_chunk(K, N, opts.num_candidates if multistart else 1, screened)
     return jax.lax.map(lambda a: fit_one(a[0], a[1], a[2], opts, stand_in), (points, mask, theta0), batch_size=chunk)
 
