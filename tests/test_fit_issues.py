@@ -14,7 +14,7 @@ from sqjax.evaluate import volume_iou_batch
 from sqjax.fitting import FitOptions, fit
 from sqjax.status import Status
 
-from helpers import params, random_problem, random_rotation, volume_iou
+from helpers import params, quick_jit, random_problem, random_rotation, volume_iou
 
 FAST = dict(max_steps=8, multistart=False)  # one start: small kernels for the tests of plumbing
 
@@ -154,11 +154,11 @@ def test_nan_row_under_grad_and_jit():
     def loss(p):
         return jnp.sum(fit(p, **FAST).superquadric.size)
 
-    jitted = jax.jit(lambda p: fit(p, **FAST))(jnp.asarray(bad, jnp.float32))
+    jitted = quick_jit(lambda p: fit(p, **FAST))(jnp.asarray(bad, jnp.float32))
     assert np.all(np.isfinite(np.asarray(jitted.superquadric.size)))
     assert np.allclose(np.asarray(jitted.superquadric.size), np.asarray(ref.superquadric.size), rtol=2e-2)
     assert int(jitted.num_points) == 99 and float(jitted.weight[7]) == 0.0
-    g = jax.grad(loss)(jnp.asarray(bad, jnp.float32))
+    g = quick_jit(jax.grad(loss))(jnp.asarray(bad, jnp.float32))
     assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g)[7] == 0.0)
 
 
@@ -167,7 +167,7 @@ def test_too_few_points_under_tracing_is_flagged():
     rng = np.random.default_rng(6)
     _, pts = random_problem(rng, n=40)
     mask = np.arange(40) < 5
-    r = jax.jit(lambda p, m: fit(p, m, **FAST))(jnp.asarray(pts, jnp.float32), jnp.asarray(mask))
+    r = quick_jit(lambda p, m: fit(p, m, **FAST))(jnp.asarray(pts, jnp.float32), jnp.asarray(mask))
     assert int(r.status) & Status.TOO_FEW_POINTS and not bool(r.converged)
     assert np.all(np.isfinite(np.asarray(r.superquadric.size)))
     with pytest.raises(ValueError, match="too few"):

@@ -14,7 +14,7 @@ from sqjax.fitting import Fit, FitOptions, fit
 from sqjax.mesh import sample_surface
 from sqjax.superquadric import Superquadric, signed_distance
 
-from helpers import matched_axes, params, random_problem, volume_iou
+from helpers import matched_axes, params, quick_jit, random_problem, volume_iou
 
 N_POINTS = 200
 N_RECOVERY = 20
@@ -283,14 +283,14 @@ def test_a_traced_fit_and_its_gradient_do_not_depend_on_the_scale(scale):
     pts = _noisy_ellipsoid(np.array([1.0, 0.7, 0.5])).astype(np.float32)
     big = (pts.astype(np.float64) * scale).astype(np.float32)
     opts = FitOptions(multistart=False, max_steps=20)  # the moment start suffices; a smaller program to compile
-    traced = jax.jit(lambda p: fit(p, options=opts))(big)
+    traced = quick_jit(lambda p: fit(p, options=opts))(big)
     eager = fit(big, options=opts)
     assert int(traced.status) == 0 and bool(traced.converged)
     np.testing.assert_allclose(np.asarray(traced.superquadric.size), np.asarray(eager.superquadric.size), rtol=1e-4)
     np.testing.assert_allclose(
         np.asarray(traced.superquadric.translation), np.asarray(eager.superquadric.translation), rtol=1e-4
     )
-    grad = jax.grad(lambda p: jnp.sum(fit(p, options=opts).superquadric.size))
+    grad = quick_jit(jax.grad(lambda p: jnp.sum(fit(p, options=opts).superquadric.size)))
     g_big, g_one = np.asarray(grad(big)), np.asarray(grad(pts))
     assert np.all(np.isfinite(g_big))
     np.testing.assert_allclose(g_big, g_one, atol=2e-3 * np.abs(g_one).max())
