@@ -453,6 +453,15 @@ def test_bad_option_value_fails_before_segmenting(capsys, scene, monkeypatch, no
     assert code == 2 and "internal" not in err
 
 
+def test_an_output_folder_given_to_dash_o_is_pointed_to_out(capsys, scene, tmp_path, no_segment):
+    """`-o DIR`, the output flag of many tools, is a segment option here: the error says so and names
+    `--out`, and nothing is written."""
+    code, _, err = run(capsys, "segment", scene, "-o", tmp_path / "results")
+    assert_one_line_error(code, err)
+    assert code == 2 and "KEY=VALUE" in err and "--out DIR" in err
+    assert not (tmp_path / "results").exists()
+
+
 @pytest.mark.parametrize("option", ["noise=-1", "threshold=inf", "window=-4", "keep_fraction=nan"])
 def test_negative_or_infinite_option_values(capsys, scene, no_segment, option):
     code, _, err = run(capsys, "segment", scene, "-o", option)

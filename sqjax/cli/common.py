@@ -185,7 +185,10 @@ def segment_options(pairs, noise):
     for pair in pairs or ():
         key, sep, text = pair.partition("=")
         if not sep:
-            raise CLIError(f"bad segment option {pair!r}: expected KEY=VALUE")
+            # -o is a segment option here, where many tools take it for the output: say where that goes
+            raise CLIError(
+                f"bad segment option {pair!r}: expected KEY=VALUE (-o sets an option; the output folder is --out DIR)"
+            )
         try:
             key, v = SegmentOptions.parse(key, text)
         except ValueError as e:
