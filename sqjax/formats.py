@@ -494,6 +494,18 @@ def write_points(path, points) -> None:
         fn(tmp, pts.astype(np.float64))
 
 
+def _intrinsics_beside(path: Path) -> str | None:
+    """The one JSON beside `path` whose name says camera or intrinsics (UOIS's `camera_params.json`,
+    a dataset's `intrinsics.json`), to name in the missing-camera error; None if none or several."""
+    try:
+        found = [
+            f.name for f in path.parent.glob("*.json") if any(w in f.name.lower() for w in ("camera", "intrinsic"))
+        ]
+    except OSError:
+        return None
+    return found[0] if len(found) == 1 else None
+
+
 def read_input(
     path,
     *,
@@ -541,9 +553,10 @@ def read_input(
     if shape is not None and len(shape) != 2:
         raise ValueError(f"{path}: holds an array of shape {shape}: neither a depth image (H, W) nor points (N, 3)")
     if ext in _NO_CAMERA and not has_camera:
+        beside = _intrinsics_beside(path)
         raise ValueError(
             f"{path}: a {ext} depth image stores no camera; pass --intrinsics FILE.json, "
-            "--camera fx,fy,cx,cy or --ortho PIXEL"
+            "--camera fx,fy,cx,cy or --ortho PIXEL" + (f" ({beside} is beside it)" if beside else "")
         )
     cam = camera
     if ortho is not None:

@@ -223,7 +223,11 @@ def test_read_input_keeps_every_row_of_a_cloud(tmp_path):
     assert np.array_equal(read_input(tmp_path / "c.npy")[0], xyzrgb[:, :3])
     assert np.array_equal(read_points(tmp_path / "c.npy"), xyzrgb[:, :3])
     np.save(tmp_path / "d.npy", np.ones((20, 8)))  # 8 columns: a depth image, which needs a camera
-    with pytest.raises(ValueError, match="stores no camera"):
+    with pytest.raises(ValueError, match="stores no camera") as refused:
+        read_input(tmp_path / "d.npy")
+    assert "beside" not in str(refused.value)
+    (tmp_path / "camera_params.json").write_text('{"fx": 1, "fy": 1, "cx": 0, "cy": 0}')  # as UOIS's folder
+    with pytest.raises(ValueError, match=r"--intrinsics FILE\.json.*\(camera_params\.json is beside it\)"):
         read_input(tmp_path / "d.npy")
     frame = {"depth": np.ones((4, 5), np.float32), "rgb": np.zeros((4, 5, 3), np.uint8)}
     np.save(tmp_path / "f.npy", np.array(frame, dtype=object), allow_pickle=True)  # UOIS's pickled frames
