@@ -87,19 +87,29 @@ def with_options(options: dict) -> dict:
     return {"compiler_options": options} if options else {}
 
 
-@functools.cache
 def compiler_options() -> dict:
-    """The XLA options sqjax's kernels compile with: `CPU_COMPILER_OPTIONS` on CPU where this XLA knows
-    them (checked once by compiling a one-line function), else none."""
+    """The XLA options sqjax's kernels compile with: `CPU_COMPILER_OPTIONS` where `cpu_options` keeps them."""
+    return cpu_options(CPU_COMPILER_OPTIONS)
+
+
+def cpu_options(options: dict) -> dict:
+    """`options` on CPU where this XLA knows every one of them (checked once per set, by compiling a
+    one-line function with them), else none: an XLA without an option refuses it ("No such compile
+    option"), and a jax.jit without the keyword refuses that."""
+    return dict(_known_on_cpu(tuple(sorted(options.items()))))
+
+
+@functools.cache
+def _known_on_cpu(items: tuple) -> tuple:
     import jax
 
-    if jax.default_backend() != "cpu":
-        return {}
+    if not items or jax.default_backend() != "cpu":
+        return ()
     try:
-        jax.jit(lambda x: x + 1, compiler_options=CPU_COMPILER_OPTIONS).lower(1.0).compile()
-    except Exception:  # an XLA without the option ("No such compile option"), a jax.jit without the keyword
-        return {}
-    return dict(CPU_COMPILER_OPTIONS)
+        jax.jit(lambda x: x + 1, compiler_options=dict(items)).lower(1.0).compile()
+    except Exception:
+        return ()
+    return items
 
 
 class kernel_jit:

@@ -6,7 +6,6 @@ Every test file takes these from here instead of defining its own copy.
 
 from __future__ import annotations
 
-import functools
 import itertools
 import os
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sqjax.cache import CPU_COMPILER_OPTIONS, cpu_options, with_options
 from sqjax.mesh import sample_surface
 from sqjax.superquadric import Superquadric
 
@@ -111,34 +111,22 @@ def matched_axes(R_true, R_fit):
 
 
 QUICK_XLA = {
+    **CPU_COMPILER_OPTIONS,
     "xla_backend_optimization_level": 0,
     "xla_llvm_disable_expensive_passes": True,
-    "xla_cpu_use_fusion_emitters": False,
 }
 """XLA options for a test's one-off program, compiled once and run once (a gradient through a whole
-deformed fit): the cheapest optimisation. The deformed-fit gradient compiled in 46 s instead of 104 s
-(2026-12-07, jaxlib 0.10.2); what the test asserts is the derivative, not its speed."""
-
-
-@functools.cache
-def _quick_options() -> dict:
-    import jax
-
-    if jax.default_backend() != "cpu":
-        return {}
-    try:  # an XLA that does not know an option refuses it ("No such compile option")
-        jax.jit(lambda x: x + 1, compiler_options=QUICK_XLA).lower(1.0).compile()
-    except Exception:
-        return {}
-    return dict(QUICK_XLA)
+deformed fit): the kernels' own (`sqjax.cache.CPU_COMPILER_OPTIONS`) and the cheapest optimisation.
+The deformed-fit gradient compiled in 46 s instead of 104 s (2026-12-07, jaxlib 0.10.2); what the test
+asserts is the derivative, not its speed."""
 
 
 def quick_jit(fn):
-    """`jax.jit(fn)` compiled with `QUICK_XLA` on CPU where this XLA knows the options, else plainly."""
+    """`jax.jit(fn)` compiled with `QUICK_XLA` on CPU where this XLA knows the options
+    (`sqjax.cache.cpu_options`), else plainly."""
     import jax
 
-    options = _quick_options()
-    return jax.jit(fn, compiler_options=options) if options else jax.jit(fn)
+    return jax.jit(fn, **with_options(cpu_options(QUICK_XLA)))
 
 
 def finite_difference_jvp(f, x, v, h=1e-5):
