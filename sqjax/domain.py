@@ -183,23 +183,25 @@ PART_WINDOWS = 8
 """The scale of a part, in seed windows, at which `cloud_noise` measures a cloud's noise."""
 
 
-def cloud_noise(points: np.ndarray, window: int, samples: int = 300) -> float:
+def cloud_noise(points: np.ndarray, window: int, samples: int = 2000) -> float:
     """The noise of a cloud (P, 3) at the scale of a part: the surface residual that a region of
     `PART_WINDOWS` seed windows of points leaves, extrapolated from smaller scales.
 
-    Real clouds are not white: stereo depth (iCub) and registered multi-view scans (Bobkov) carry
-    errors correlated along the surface, so the residual of a smooth surface fitted to k neighbours
-    grows with k (as k^0.6 .. k^1 there, against k^0.1 on a Kinect frame). Measured at one small
-    scale, such noise makes every part that grows past a few windows look like several. At `samples`
-    points (spread over the cloud's rows), a quadric height field is fitted to the k nearest
-    neighbours in the frame of their principal axes, and the lower quartile over the patches of its
-    residual std taken (the smooth patches; edges and small parts raise the others) at k = window / 2
-    and 2 windows. Their growth gives the exponent beta (clipped to [0, 1]); the noise is the residual
-    at 2 windows times (PART_WINDOWS / 2)^beta. Patches of PART_WINDOWS windows measured directly
-    would span the parts of small objects (a chair's legs and seat): that gave 3-4 times the noise on
-    the multi-part clouds. `PART_WINDOWS` measured over the benchmark's clouds suite and Bobkov's
-    rooms (benchmarks/RESULTS.md, 2026-12-03): 4 windows 77.6% correct, 8 windows 78.9%, 16 windows
-    74.5% (multi-part objects merge), the single-object clouds fewer parts the larger it is.
+    Real clouds are not white: stereo depth (iCub) and registered multi-view scans (Bobkov) carry errors
+    correlated along the surface, so the residual of a smooth surface fitted to k neighbours grows with
+    k (as k^0.6 .. k^1 there, against k^0.1 on a Kinect frame). Measured at one small scale, such noise
+    makes every part that grows past a few windows look like several. At `samples` points
+    (`spread_sample`: chosen by their positions, not their rows), a quadric height field is fitted to
+    the k nearest neighbours in the frame of their principal axes, and the lower quartile over the
+    patches of its residual std taken (the smooth patches; edges and small parts raise the others)
+    at k = window / 2 and 2 windows. Their growth gives the exponent beta (clipped to [0, 1]); the noise is
+    the residual at 2 windows times (PART_WINDOWS / 2)^beta. Patches of PART_WINDOWS windows measured
+    directly would span the parts of small objects (a chair's legs and seat): that gave 3-4 times the
+    noise on the multi-part clouds. `PART_WINDOWS` measured over the benchmark's clouds suite and
+    Bobkov's rooms (benchmarks/RESULTS.md, 2026-12-03): 4 windows 77.6% correct, 8 windows 78.9%, 16
+    windows 74.5% (multi-part objects merge), the single-object clouds fewer parts the larger it is.
+    2,000 samples, not 300: the estimate of one cloud from five random draws of 300 spread over 16%
+    (Bobkov's room1: 6.1-7.2 mm), of 3,000 over 10% (2026-12-07 late night).
 
     The scale is counted in points, so the estimate depends on the cloud's density: where the residual
     grows with the patch's area (registered scans), a cloud thinned to a quarter reads several times the
@@ -209,10 +211,28 @@ def cloud_noise(points: np.ndarray, window: int, samples: int = 300) -> float:
     small, large = max(window // 2, 8), min(2 * window, P.shape[0])
     if large <= small:
         return float(_patch_residuals(P[None])[0])
-    nn = knn(P, large, P[np.unique(np.linspace(0, P.shape[0] - 1, samples).astype(np.int64))])
+    nn = knn(P, large, P[spread_sample(P, samples)])
     lo, hi = (float(np.quantile(_patch_residuals(P[nn[:, :k]]), 0.25)) for k in (small, large))
     beta = float(np.clip(np.log2(max(hi, 1e-300) / max(lo, 1e-300)) / np.log2(large / small), 0.0, 1.0))
     return hi * (PART_WINDOWS * window / large) ** beta
+
+
+def spread_sample(points: np.ndarray, n: int) -> np.ndarray:
+    """Sorted indices of n of the points (P, 3) (all when P <= n), chosen by a hash of each point's
+    position on a grid of 2^20 cells across the cloud's extent: a property of the set of points, not
+    of the rows. The same points are chosen whatever the rows' order, in any unit, and dropping m rows
+    changes at most m of them (chosen every P / n rows, three NaN rows at the top of a 3,500-point
+    cloud moved its noise estimate by 29%, and a shuffle by 17%)."""
+    P = np.asarray(points, np.float64)
+    if P.shape[0] <= n:
+        return np.arange(P.shape[0])
+    lo, extent = P.min(0), max(float(np.ptp(P, 0).max()), 1e-300)
+    cell = np.minimum((P - lo) / extent * 2.0**20, 2.0**20 - 1).astype(np.uint64)
+    h = cell[:, 0] | (cell[:, 1] << np.uint64(21)) | (cell[:, 2] << np.uint64(42))
+    for shift, mult in ((31, 0xBF58476D1CE4E5B9), (27, 0x94D049BB133111EB)):  # splitmix64's finaliser
+        h = (h ^ (h >> np.uint64(shift))) * np.uint64(mult)
+    h ^= h >> np.uint64(31)
+    return np.sort(np.argsort(h, kind="stable")[:n])
 
 
 def _patch_residuals(q: np.ndarray) -> np.ndarray:
