@@ -282,7 +282,13 @@ def _checked_points(xp, points, mask, dtype):
     """points (K, N, 3) in the centring precision (float64 on the host), the mask of their valid rows
     (K, N) and whether the input was one problem; ValueErrors that name the problem."""
     if not _is_traced(points):
-        points = np.asarray(points)
+        try:
+            points = np.asarray(points)
+        except ValueError:  # a list of clouds of different sizes
+            raise ValueError(
+                "fit: points must be one array (N, 3) or (K, N, 3); clouds of different sizes go in one "
+                "(K, N, 3) array padded to the largest N, with mask= (K, N) True on each cloud's rows"
+            ) from None
         if not is_real(points.dtype):
             raise ValueError(f"fit: points must be real numbers, got dtype {points.dtype}")
     if points.ndim not in (2, 3) or points.shape[-1] != 3:

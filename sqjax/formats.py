@@ -518,9 +518,10 @@ def read_input(
     """Read a file as `sqjax segment` does: `(RangeImage, "range_image")` or `((P, 3) points, "point_cloud")`.
 
     The extension decides (`SUPPORTED_INPUTS`); a `.pcd` is a range image when organised (HEIGHT > 1)
-    and a `.npy` a point set when `(N, 3)` (to `(N, 7)`: x y z first), unless a camera is given: then
-    both are range images. A point set keeps every row of the file (NaN ones too, which `segment`
-    leaves unlabelled), so that labels[i] belongs to row i.
+    and a `.npy` a point set when `(N, 3)` (to `(N, 7)`: x y z first; a camera given with one is an
+    error, and so is a `(3, N)` array without a camera: a transposed cloud). A point set keeps every
+    row of the file (NaN ones too, which `segment` leaves unlabelled), so that labels[i] belongs to
+    row i.
     `camera`: a `PinholeCamera` (overrides a stored one); `ortho`: `[pixel_size]` or `[pixel_size, cx,
     cy]` (an `OrthographicCamera`, centred on the image when cx, cy are not given); `intrinsics`: a JSON
     file of pinhole intrinsics (`read_intrinsics`); `color`: a colour image registered to the depth
@@ -541,15 +542,25 @@ def read_input(
     if path.is_dir():
         raise ValueError(f"{path}: is a directory, expected a file ({SUPPORTED_INPUTS})")
     has_camera = camera is not None or ortho is not None
+    shape = _npy_shape(path) if ext == ".npy" else None
+    if ext == ".npy" and shape is None:
+        try:  # not a plain array: a pickled frame (read below), or a damaged or empty file (say so now)
+            _load_npy(path)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
+    if shape is not None and len(shape) == 2 and not has_camera and shape[0] <= _MAX_COLUMNS < shape[1]:
+        raise ValueError(
+            f"{path}: holds an array of shape {shape}: points are rows (N, 3), so this looks like a "
+            f"transposed cloud (save it as array.T), and a depth image {shape[0]} pixels tall needs a camera"
+        )
     holds_points = _HOLDS_POINTS.get(ext)
-    if not callable(_FORMATS[ext][0]) or (not has_camera and holds_points is not None and holds_points(path)):
+    if not callable(_FORMATS[ext][0]) or (holds_points is not None and holds_points(path)):
         if has_camera:
             raise ValueError(f"{path}: --camera / --ortho apply to range images, and this is a point cloud")
         if color is not None:
             raise ValueError(f"{path}: --color applies to range images, and this is a point cloud")
         pts = read_point_rows(path)[0]  # every row: labels[i] belongs to the file's row i (NaN rows get 0)
         return (pts / depth_scale if depth_scale is not None else pts), "point_cloud"
-    shape = _npy_shape(path) if ext == ".npy" else None
     if shape is not None and len(shape) != 2:
         raise ValueError(f"{path}: holds an array of shape {shape}: neither a depth image (H, W) nor points (N, 3)")
     if ext in _NO_CAMERA and not has_camera:

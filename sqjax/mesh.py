@@ -18,6 +18,7 @@ def _spow(c, e):
 
 def surface_grid(sq: Superquadric, resolution: int = 48):
     """Parametric surface points, numpy `(resolution, 2 * resolution, 3)` in world coordinates."""
+    single(sq, "a mesh")
     a = np.asarray(sq.size, float)
     e1, e2 = np.asarray(sq.epsilon, float)
     eta = np.linspace(-np.pi / 2, np.pi / 2, resolution)
@@ -29,6 +30,16 @@ def surface_grid(sq: Superquadric, resolution: int = 48):
     x = np.stack([a[0] * ce * _spow(np.cos(om), e2), a[1] * ce * _spow(np.sin(om), e2), a[2] * se], -1)
     # in float64 numpy: meshes come in many sizes, and each would compile (and reload) a kernel
     return world_points(jax.tree.map(lambda v: np.asarray(v, float), sq), x, xp=np)
+
+
+def single(sq: Superquadric, what: str) -> None:
+    """Raise a ValueError naming `what` unless `sq` is one superquadric (no batch axis)."""
+    batch = np.shape(sq.size)[:-1]
+    if batch:
+        raise ValueError(
+            f"{what} is made of one superquadric, got a batch of shape {batch}: take sq[i], or "
+            "sqjax.export.part_meshes(sq) for a mesh of each"
+        )
 
 
 LOCAL_MESH_SIZE = 1e-3
@@ -80,6 +91,7 @@ def sample_surface(sq: Superquadric, n: int, *, seed: int = 0, noise: float = 0.
     """
     import trimesh
 
+    single(sq, "sample_surface")
     rng = np.random.default_rng(seed)
     mesh = to_trimesh(sq, 64)
     if viewpoint is not None:

@@ -181,6 +181,21 @@ class Superquadric(eqx.Module):
                 raise IndexError(f"Superquadric: index {i.tolist()} is out of range for a batch of {n}")
         return jax.tree.map(lambda v: v[index], self)
 
+    def __len__(self) -> int:
+        """The number of models along the first batch axis; a TypeError for a single superquadric."""
+        batch = np.shape(self.size)[:-1]
+        if not batch:
+            raise TypeError("a single Superquadric has no len(): it is one model, not a batch")
+        return batch[0]
+
+    def __iter__(self):
+        """The models along the first batch axis (`sq[0]`, `sq[1]`, ...); a TypeError for a single
+        superquadric, which Python would otherwise iterate as empty (through `__getitem__`)."""
+        return (self[i] for i in range(len(self)))
+
+    def __bool__(self) -> bool:
+        return True  # a model is a model: not "empty" through __len__
+
     def unbatch(self) -> list[Superquadric]:
         """A batched superquadric (fields `(K, ...)`) -> K single ones, whose fields are numpy slices of one
         transfer to the host (a device array per field and model would cost more than the rest of a
@@ -232,7 +247,7 @@ class Superquadric(eqx.Module):
 @kernel_jit
 def to_model_frame(sq: Superquadric, points):
     """World points (..., 3) -> undeformed model-frame points (..., 3): R^T (p - t), unbend, untaper."""
-    x = (points - sq.translation) @ sq.rotation
+    x = _rotate_into(points - sq.translation, sq.rotation)
     x = unbend(x, sq.bend)
     return untaper(x, sq.taper, sq.size[..., 2:3])
 
@@ -247,7 +262,16 @@ def world_points(sq: Superquadric, x, xp=jnp):
     """`to_world_frame` unjitted; with `xp=numpy` (and numpy fields) on the host, for meshes of any size."""
     x = taper_points(x, sq.taper, sq.size[..., 2:3], xp=xp)
     x = bend_points(x, sq.bend, xp=xp)
-    return x @ xp.swapaxes(sq.rotation, -1, -2) + sq.translation
+    R = sq.rotation
+    if xp.ndim(R) == 2:
+        return x @ xp.swapaxes(R, -1, -2) + sq.translation
+    return xp.einsum("...j,...ij->...i", x, R) + sq.translation  # a batch: each point by its model's R
+
+
+def _rotate_into(v, R):
+    """R^T v of vectors v (..., 3) in the frame of rotations R (3, 3) or a batch (..., 3, 3) that
+    broadcasts against them (a matrix product would pair a batch's vectors with every model)."""
+    return v @ R if jnp.ndim(R) == 2 else jnp.einsum("...i,...ij->...j", v, R)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -355,7 +379,7 @@ def frame_distance(x, log_size, epsilon, taper, bend, of_logs=signed_distance_fr
 
 def _per_point(fn, sq: Superquadric, points):
     """`fn(x, log_size, epsilon, taper, bend)` of one rotated model-frame point, over points (..., 3)."""
-    x = (points - sq.translation) @ sq.rotation
+    x = _rotate_into(points - sq.translation, sq.rotation)
     batch = jnp.broadcast_shapes(x.shape[:-1], sq.size.shape[:-1])
     args = [
         jnp.broadcast_to(v, batch + v.shape[-1:]).reshape(-1, v.shape[-1])
@@ -387,6 +411,16 @@ def _point_function(fn):
                 raise ValueError(f"{name}: points must be real numbers, got dtype {points.dtype}")
         if points.ndim == 0 or points.shape[-1] != 3:
             raise ValueError(f"{name}: points must have shape (..., 3), got {tuple(points.shape)}")
+        batch = np.shape(sq.size)[:-1]
+        try:
+            np.broadcast_shapes(tuple(points.shape[:-1]), batch)
+        except ValueError:
+            raise ValueError(
+                f"{name}: points of shape {tuple(points.shape)} do not broadcast against a batch of "
+                f"superquadrics of shape {batch}: points (..., 3) pair with the batch along their last "
+                f"axes before the 3 (each model's own N points: shape (N, {', '.join(map(str, batch))}, 3)), "
+                "or take one model, sq[i]"
+            ) from None
         return fn(sq, points)
 
     return checked

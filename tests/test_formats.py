@@ -236,6 +236,15 @@ def test_read_input_keeps_every_row_of_a_cloud(tmp_path):
     np.save(tmp_path / "e.npy", np.ones((4, 5, 6)))  # neither: the shape is named, not the camera
     with pytest.raises(ValueError, match=r"e\.npy: holds an array of shape \(4, 5, 6\)"):
         read_input(tmp_path / "e.npy")
+    # a cloud given a camera is still a cloud, not a depth image 3 pixels wide
+    with pytest.raises(ValueError, match=r"c\.npy: --camera / --ortho apply to range images, and this is a point"):
+        read_input(tmp_path / "c.npy", camera=PinholeCamera(150.0, 150.0, 80.0, 60.0))
+    np.save(tmp_path / "t.npy", xyzrgb[:, :3].T)  # a transposed cloud is named as one
+    with pytest.raises(ValueError, match=r"t\.npy: holds an array of shape \(3, 20\).*transposed cloud"):
+        read_input(tmp_path / "t.npy")
+    (tmp_path / "z.npy").write_bytes(b"")  # an empty file is said to be one, not a depth image without camera
+    with pytest.raises(ValueError, match=r"z\.npy: not a NumPy \.npy file"):
+        read_input(tmp_path / "z.npy")
 
 
 def test_binary_compressed_pcd(tmp_path):

@@ -428,3 +428,33 @@ def test_host_data_reaches_the_device_without_a_compiled_conversion():
     assert compiled == [], compiled
     traced = jax.jit(lambda s: to_device(s, jnp.float32) * 2)(jnp.arange(3.0))
     np.testing.assert_array_equal(traced, [0.0, 2.0, 4.0])
+
+
+def test_a_batch_of_models_pairs_each_with_its_own_points():
+    """A batch of K models (as `fit` returns for K clouds) evaluated on points (N, K, 3) gives each
+    model's own values (N, K), equal to the single models'; one point per model (K, 3) gives (K,).
+    A batch is iterable and has a len; a single model is neither (it iterated as empty). Shapes that do
+    not pair and meshes of a batch raise errors that say what to pass."""
+    rng = np.random.default_rng(0)
+    sqs = [
+        Superquadric.create([1.0, 2.0, 0.5], [0.5, 1.2], rotation=so3.from_euler(jnp.array(a)), translation=t)
+        for a, t in (([0.3, 0.2, -0.4], [0.0, 0.0, 4.0]), ([-1.0, 0.5, 0.1], [1.0, -2.0, 6.0]))
+    ]
+    batch = jax.tree.map(lambda *v: jnp.stack(v), *sqs)
+    pts = rng.normal(size=(5, 2, 3)) + np.array([[0.0, 0.0, 4.0], [1.0, -2.0, 6.0]])
+    for fn in (inside_outside, distance):
+        both = np.asarray(fn(batch, pts))
+        assert both.shape == (5, 2)
+        for i, sq in enumerate(sqs):
+            np.testing.assert_allclose(both[:, i], np.asarray(fn(sq, pts[:, i])), rtol=1e-5)
+        np.testing.assert_allclose(np.asarray(fn(batch, pts[0])), both[0], rtol=1e-5)
+    assert len(batch) == 2 and [np.asarray(s.size).tolist() for s in batch] == [[1.0, 2.0, 0.5]] * 2
+    with pytest.raises(TypeError, match="single Superquadric has no len"):
+        list(sqs[0])
+    assert bool(sqs[0])
+    with pytest.raises(ValueError, match=r"inside_outside: points of shape \(2, 5, 3\) do not broadcast.*\(N, 2, 3\)"):
+        inside_outside(batch, np.swapaxes(pts, 0, 1))
+    with pytest.raises(ValueError, match=r"one superquadric, got a batch of shape \(2,\).*part_meshes"):
+        to_trimesh(batch)
+    with pytest.raises(ValueError, match=r"sample_surface is made of one superquadric"):
+        sample_surface(batch, 10)
