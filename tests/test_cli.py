@@ -696,3 +696,16 @@ def test_noise_free_cloud_gets_a_note_naming_noise(capsys, tmp_path):
 
     # one far row (a depth pixel at 1e30) does not make the noisy cloud's extent, and it noise-free
     assert not noise_free(np.concatenate([noisy, [[1e30, 0.0, 0.0]]]), 0.004) and noise_free(pts, 1e-6)
+
+
+def test_a_principal_point_far_from_the_image_centre_gets_a_note():
+    """Intrinsics of a 160 x 120 frame given with a 1280 x 720 one: the note names the principal point
+    and the image's centre; a centred camera (and a cloud) get none."""
+    from sqjax.cli.segment import camera_hint
+    from sqjax.rangeimage import PinholeCamera, RangeImage
+
+    depth = np.ones((720, 1280), np.float32)
+    note = camera_hint(RangeImage(depth, PinholeCamera(150.0, 150.0, 80.0, 60.0)), "range_image")
+    assert "principal point (80, 60) is far from the centre of the 1280 x 720 image (639.5, 359.5)" in note
+    assert camera_hint(RangeImage(depth, PinholeCamera(900.0, 900.0, 650.0, 350.0)), "range_image") == ""
+    assert camera_hint(np.zeros((10, 3)), "point_cloud") == ""

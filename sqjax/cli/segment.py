@@ -216,7 +216,7 @@ def segment_and_write(data, kind, out, *, input_path, input_shape, settings, opt
         )
         if seg.parts:
             print(_parts_table(seg))
-        for hint in (noise_free_hint(seg), mesh_hint(kind, input_path)):
+        for hint in (noise_free_hint(seg), mesh_hint(kind, input_path), camera_hint(data, kind)):
             if hint:
                 print(hint)
         print(f"wrote {out}{os.sep}: {' '.join(written)}")
@@ -239,6 +239,26 @@ def mesh_hint(kind, input_path) -> str:
         f"sqjax: note: a mesh is segmented as its vertices, which sample its surface unevenly; {advice}"
         if advice
         else ""
+    )
+
+
+def camera_hint(data, kind) -> str:
+    """A note when a pinhole camera's principal point lies more than a quarter of the image's width or
+    height from its centre: most often intrinsics of another resolution (those of a 160 x 120 frame on
+    a 1280 x 720 one), which no error catches. '' otherwise; no result changes."""
+    from ..rangeimage import PinholeCamera
+
+    cam = getattr(data, "camera", None)
+    if kind != "range_image" or not isinstance(cam, PinholeCamera):
+        return ""
+    H, W = data.shape
+    cx, cy = (W - 1) / 2, (H - 1) / 2
+    if abs(cam.cx - cx) <= W / 4 and abs(cam.cy - cy) <= H / 4:
+        return ""
+    return (
+        f"sqjax: note: the camera's principal point ({cam.cx:.4g}, {cam.cy:.4g}) is far from the centre of the "
+        f"{W} x {H} image ({cx:.4g}, {cy:.4g}); if the intrinsics are for another resolution, scale fx, fy, cx "
+        "and cy by the ratio of the sizes"
     )
 
 
