@@ -548,7 +548,7 @@ def read_input(
             _load_npy(path)
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
-    if shape is not None and len(shape) == 2 and not has_camera and shape[0] <= _MAX_COLUMNS < shape[1]:
+    if shape is not None and len(shape) == 2 and not has_camera and 3 <= shape[0] <= _MAX_COLUMNS < shape[1]:
         raise ValueError(
             f"{path}: holds an array of shape {shape}: points are rows (N, 3), so this looks like a "
             f"transposed cloud (save it as array.T), and a depth image {shape[0]} pixels tall needs a camera"
