@@ -306,14 +306,6 @@ _FORMATS: dict[str, tuple[Any, Any, Any, Any]] = {  # per extension: a handler o
 }
 
 
-def _npy_holds_points(path) -> bool:
-    try:
-        a = np.load(path, mmap_mode="r", allow_pickle=False)
-    except Exception:  # damaged files: the reader reports them
-        return False
-    return _cloud_shape(a.shape)
-
-
 def _npy_shape(path) -> tuple | None:
     """The shape of a plain .npy array (None for a pickled or damaged file: the reader reports those)."""
     try:
@@ -322,8 +314,8 @@ def _npy_shape(path) -> tuple | None:
         return None
 
 
-# extensions `_FORMATS` reads both ways -> does this file hold a point set rather than a range image?
-_HOLDS_POINTS = {".npy": _npy_holds_points, ".pcd": lambda p: (pcd_height(p) or 0) <= 1}
+# extensions `_FORMATS` reads both ways but `.npy` (its shape decides) -> does this file hold a point set?
+_HOLDS_POINTS = {".pcd": lambda p: (pcd_height(p) or 0) <= 1}
 _NO_CAMERA = (".npy", ".png")  # range images that store no camera
 SUPPORTED_INPUTS = (
     f"range images: {' '.join(e for e, h in _FORMATS.items() if callable(h[0]))}; "
@@ -542,19 +534,15 @@ def read_input(
     if path.is_dir():
         raise ValueError(f"{path}: is a directory, expected a file ({SUPPORTED_INPUTS})")
     has_camera = camera is not None or ortho is not None
-    shape = _npy_shape(path) if ext == ".npy" else None
-    if ext == ".npy" and shape is None:
-        try:  # not a plain array: a pickled frame (read below), or a damaged or empty file (say so now)
-            _load_npy(path)
-        except ValueError as e:
-            raise ValueError(f"{path}: {e}") from None
+    shape = _npy_shape(path) if ext == ".npy" else None  # None: pickled (a frame), damaged or empty
     if shape is not None and len(shape) == 2 and not has_camera and 3 <= shape[0] <= _MAX_COLUMNS < shape[1]:
         raise ValueError(
             f"{path}: holds an array of shape {shape}: points are rows (N, 3), so this looks like a "
             f"transposed cloud (save it as array.T), and a depth image {shape[0]} pixels tall needs a camera"
         )
-    holds_points = _HOLDS_POINTS.get(ext)
-    if not callable(_FORMATS[ext][0]) or (holds_points is not None and holds_points(path)):
+    holds = _HOLDS_POINTS.get(ext)
+    holds_points = _cloud_shape(shape) if shape is not None else holds is not None and holds(path)
+    if not callable(_FORMATS[ext][0]) or holds_points:
         if has_camera:
             raise ValueError(f"{path}: --camera / --ortho apply to range images, and this is a point cloud")
         if color is not None:
@@ -564,6 +552,11 @@ def read_input(
     if shape is not None and len(shape) != 2:
         raise ValueError(f"{path}: holds an array of shape {shape}: neither a depth image (H, W) nor points (N, 3)")
     if ext in _NO_CAMERA and not has_camera:
+        if ext == ".npy" and shape is None:
+            try:  # a damaged or empty file is said to be one, not a depth image without its camera
+                _load_npy(path)
+            except ValueError as e:
+                raise ValueError(f"{path}: {e}") from None
         beside = _intrinsics_beside(path)
         raise ValueError(
             f"{path}: a {ext} depth image stores no camera; pass --intrinsics FILE.json, "

@@ -189,9 +189,10 @@ class Superquadric(eqx.Module):
         return batch[0]
 
     def __iter__(self):
-        """The models along the first batch axis (`sq[0]`, `sq[1]`, ...); a TypeError for a single
-        superquadric, which Python would otherwise iterate as empty (through `__getitem__`)."""
-        return (self[i] for i in range(len(self)))
+        """The models along the first batch axis (`unbatch`'s, one transfer to the host, for one axis;
+        `sq[0]`, `sq[1]`, ... for more); a TypeError for a single superquadric, which Python would
+        otherwise iterate as empty (through `__getitem__`)."""
+        return iter(self.unbatch()) if np.ndim(self.size) == 2 else (self[i] for i in range(len(self)))
 
     def __bool__(self) -> bool:
         return True  # a model is a model: not "empty" through __len__
@@ -262,16 +263,14 @@ def world_points(sq: Superquadric, x, xp=jnp):
     """`to_world_frame` unjitted; with `xp=numpy` (and numpy fields) on the host, for meshes of any size."""
     x = taper_points(x, sq.taper, sq.size[..., 2:3], xp=xp)
     x = bend_points(x, sq.bend, xp=xp)
-    R = sq.rotation
-    if xp.ndim(R) == 2:
-        return x @ xp.swapaxes(R, -1, -2) + sq.translation
-    return xp.einsum("...j,...ij->...i", x, R) + sq.translation  # a batch: each point by its model's R
+    return _rotate_into(x, xp.swapaxes(sq.rotation, -1, -2), xp) + sq.translation
 
 
-def _rotate_into(v, R):
+def _rotate_into(v, R, xp=jnp):
     """R^T v of vectors v (..., 3) in the frame of rotations R (3, 3) or a batch (..., 3, 3) that
-    broadcasts against them (a matrix product would pair a batch's vectors with every model)."""
-    return v @ R if jnp.ndim(R) == 2 else jnp.einsum("...i,...ij->...j", v, R)
+    broadcasts against them (a matrix product would pair a batch's vectors with every model); one
+    model's is the matrix product it always was."""
+    return v @ R if xp.ndim(R) == 2 else xp.einsum("...i,...ij->...j", v, R)
 
 
 # ----------------------------------------------------------------------------------------------------
