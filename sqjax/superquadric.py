@@ -189,10 +189,12 @@ class Superquadric(eqx.Module):
         return batch[0]
 
     def __iter__(self):
-        """The models along the first batch axis (`unbatch`'s, one transfer to the host, for one axis;
-        `sq[0]`, `sq[1]`, ... for more); a TypeError for a single superquadric, which Python would
-        otherwise iterate as empty (through `__getitem__`)."""
-        return iter(self.unbatch()) if np.ndim(self.size) == 2 else (self[i] for i in range(len(self)))
+        """The models along the first batch axis (`sq[0]`, `sq[1]`, ...), with numpy fields sliced from one
+        transfer to the host; a TypeError for a single superquadric, which Python would otherwise iterate
+        as empty (through `__getitem__`)."""
+        n = len(self)
+        host = jax.tree.map(np.asarray, self)
+        return (jax.tree.map(lambda v, i=i: v[i], host) for i in range(n))
 
     def __bool__(self) -> bool:
         return True  # a model is a model: not "empty" through __len__
@@ -205,8 +207,7 @@ class Superquadric(eqx.Module):
             return [self]
         if np.ndim(self.size) != 2:
             raise ValueError(f"Superquadric.unbatch: expected one batch axis, got size of shape {np.shape(self.size)}")
-        host = jax.tree.map(np.asarray, self)
-        return [jax.tree.map(lambda v, i=i: v[i], host) for i in range(host.size.shape[0])]
+        return list(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> Superquadric:
