@@ -6,9 +6,10 @@ call `sqjax.enable_compilation_cache()` once, before the first `segment` / `fit`
 
 JAX's cache keeps the compiled code, but it can only be asked after the kernel has been traced and
 lowered again, and for the fit kernels that is most of a warm start (about 1.5 s of Python per
-kernel: 3.8 s of `sqjax demo`'s 9 s). So the fit kernels (`persistent_kernel`) are also kept as
-serialized `jax.export` modules, next to JAX's cache, keyed by sqjax's source, the JAX version, the
-backend and the kernel's arguments (shapes, dtypes, static options): a later process deserializes the
+kernel: 3.8 s of `sqjax demo`'s 9 s). So the fit and pair kernels (`persistent_kernel`), those
+split over the CPU devices too, are also kept as serialized `jax.export` modules, next to JAX's
+cache, keyed by sqjax's source, the JAX version, the backend, the number of devices and the kernel's
+arguments (shapes, dtypes, static options): a later process deserializes the
 module (no tracing) and JAX's cache supplies its compiled code. The results are those of the traced
 kernel, bit for bit (the same StableHLO).
 """
@@ -260,16 +261,19 @@ def release_if_crowded() -> bool:
     return True
 
 
-def persistent_kernel(fn):
+def persistent_kernel(fn, name: str | None = None):
     """`fn` (a jitted function of arrays, `None`s and option modules) whose traced and lowered form is
     kept on disk while the kernel folder is set (`enable_compilation_cache`). The arrays among the
     arguments' leaves are the module's inputs; everything else (option fields, Python scalars, the
-    tree) is part of the key. Calls under a JAX transformation (tracers among the arguments), and
-    any kernel that cannot be exported or loaded, run `fn` itself."""
+    tree, the number of devices) is part of the key, and `name` (default: `fn`'s) tells kernels of
+    the same arguments apart. Kernels split over the CPU devices (`parallel.sharded_kernel`) are kept
+    too: they load for the same device count. Calls under a JAX transformation (tracers among the
+    arguments), and any kernel that cannot be exported or loaded, run `fn` itself."""
     import jax
     import numpy as np
 
-    name = f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', getattr(fn, '__name__', ''))}"
+    if name is None:
+        name = f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', getattr(fn, '__name__', ''))}"
     # the arguments are scanned for tracers here once: a `kernel_jit` is called through its jitted form
     jitted = fn.jitted if isinstance(fn, kernel_jit) else (lambda top=True: fn)
 
@@ -280,6 +284,7 @@ def persistent_kernel(fn):
         spec = (
             name,
             x64,
+            jax.device_count(),
             repr(tree),
             [(v.shape, str(v.dtype)) if i in dynamic else repr(v) for i, v in enumerate(leaves)],
         )
@@ -329,9 +334,28 @@ def _load(path: Path, options: dict):
     except OSError:
         return None
     try:
-        return jax.jit(jax.export.deserialize(bytearray(blob)).call, **with_options(options))
+        return _callable(jax.export.deserialize(bytearray(blob)), options)
     except Exception:  # a corrupt or foreign file: export it again
         return None
+
+
+def _callable(exported, options: dict):
+    """The jitted call of an exported module. One split over the devices (`nr_devices` > 1, the
+    split inside it) runs on all of them, its inputs and outputs placed whole on each (a copy per
+    device, which the split slices): the traced kernel's results bit for bit (tests/test_vmap.py),
+    and its time within the machine's drift (six mOSD scenes on two devices, 2026-12-08: 17.9 and
+    19.4 s against 18.0 and 18.3 s traced)."""
+    import jax
+    import numpy as np
+
+    kw = with_options(options)
+    if exported.nr_devices > 1:
+        devices = jax.local_devices()
+        if len(devices) != exported.nr_devices:
+            raise ValueError(f"exported for {exported.nr_devices} devices, {len(devices)} here")
+        whole = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("k",)), jax.sharding.PartitionSpec())
+        kw.update(in_shardings=whole, out_shardings=whole)
+    return jax.jit(exported.call, **kw)
 
 
 def _export(fn, leaves, tree, dynamic, inputs, path: Path, options: dict):
@@ -354,4 +378,4 @@ def _export(fn, leaves, tree, dynamic, inputs, path: Path, options: dict):
         os.replace(f.name, path)
     except OSError:
         pass
-    return jax.jit(exported.call, **with_options(options))
+    return _callable(exported, options)

@@ -47,10 +47,12 @@ def shard(fn, sharded: tuple[bool, ...]):
 
 @functools.cache
 def sharded_kernel(fn, sharded: tuple[bool, ...]):
-    """`jax.jit(shard(fn, sharded))` with sqjax's compiler options, made once per function and pattern."""
-    from .cache import compiler_options, with_options
+    """`jax.jit(shard(fn, sharded))` with sqjax's compiler options (`cache.kernel_jit`), made once per
+    function and pattern, and kept on disk with the compilation cache (`cache.persistent_kernel`)."""
+    from .cache import kernel_jit, persistent_kernel
 
-    return jax.jit(shard(fn, sharded), **with_options(compiler_options()))
+    name = f"{fn.__module__}.{fn.__qualname__}.split{''.join('s' if s else 'r' for s in sharded)}"
+    return persistent_kernel(kernel_jit(shard(fn, sharded)), name=name)
 
 
 def use_cpu_cores(n: int | None = None) -> int:

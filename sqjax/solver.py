@@ -294,7 +294,7 @@ def _split_over_devices(problems, fast_compile: bool = True):
     return kernel_jit(run, filter=True, fast_compile=fast_compile)
 
 
-fit_sharded = _split_over_devices(fit_problems, fast_compile=False)
+fit_sharded = persistent_kernel(_split_over_devices(fit_problems, fast_compile=False), name="sqjax.solver.fit_sharded")
 """`fit_kernel` with the problems split over the CPU devices."""
-fit_padded_sharded = _split_over_devices(padded_problems)
+fit_padded_sharded = persistent_kernel(_split_over_devices(padded_problems), name="sqjax.solver.fit_padded_sharded")
 """`fit_padded` with the problems split over the CPU devices."""

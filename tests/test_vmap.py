@@ -162,3 +162,48 @@ def test_a_large_multistart_batch_over_two_devices_finishes():
         [sys.executable, "-c", _MULTISTART_TWO_DEVICES], env=env, capture_output=True, text=True, timeout=180
     )
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+
+
+_KEPT_SPLIT_KERNELS = textwrap.dedent("""
+    import pathlib, tempfile
+    import jax, numpy as np
+    from sqjax import cache, parallel, solver
+    from sqjax.fitting import FitOptions, fit
+    from sqjax.workspace import _pair_distances
+    assert jax.device_count() == 2 and parallel.splits(4)
+    folder = pathlib.Path(tempfile.mkdtemp())
+    cache.set_kernel_dir(folder)
+    traces, real = [], solver.map_problems
+    solver.map_problems = lambda *a, **k: (traces.append(1), real(*a, **k))[1]
+    leaves = lambda out: [np.asarray(v) for v in jax.tree.leaves(out)]
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(4, 64, 3)) * np.array([1.0, 0.6, 0.3])
+    opts = FitOptions(max_steps=3, multistart=False)
+    first = leaves(fit(pts, options=opts))  # the split fit kernel, exported on its first call
+    theta = np.zeros((8, 11), np.float32)
+    theta[:, :3], theta[:, 3:5], theta[:, 8:] = np.log(0.5), 1.0, rng.normal(size=(8, 3)) * 0.2
+    args = (theta, rng.normal(size=(16, 3)).astype(np.float32), np.tile(np.float32([0, 0, 1]), (16, 1)),
+            rng.integers(0, 16, 8).astype(np.int32), np.float32(1.15), np.float32(0.01))
+    split = parallel.sharded_kernel(_pair_distances, (True, False, False, True, False, False))
+    pairs = leaves(split(*args))
+    assert len(traces) == 1 and len(list(folder.rglob("*.jaxexport"))) >= 2
+    cache._LOADED.clear()  # a new process: only the disk is left
+    jax.clear_caches()
+    assert all(np.array_equal(a, b) for a, b in zip(first, leaves(fit(pts, options=opts))))
+    assert all(np.array_equal(a, b) for a, b in zip(pairs, leaves(split(*args))))
+    assert len(traces) == 1, "the kept split kernel was traced again"
+    cache.set_kernel_dir(None)  # the kernels as traced: the same results, bit for bit
+    assert all(np.array_equal(a, b) for a, b in zip(first, leaves(fit(pts, options=opts))))
+    assert all(np.array_equal(a, b) for a, b in zip(pairs, leaves(_pair_distances(*args))))
+    print("ok")
+""")
+
+
+def test_kernels_split_over_two_devices_are_kept_and_load_back():
+    """With the kernel folder set, the fit and pair kernels split over the CPU devices are exported
+    too: a later process loads them without tracing (the command line's several inputs then skip
+    5-9 s of tracing per call), and their results are the traced kernels', bit for bit."""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    run = [sys.executable, "-c", _KEPT_SPLIT_KERNELS]
+    out = subprocess.run(run, env=env, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]

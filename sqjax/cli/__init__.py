@@ -111,9 +111,10 @@ def main(argv=None) -> int:
 
         if args.command == "segment" and wants_many(args):
             # every core a JAX device, batches split over them (`sqjax.parallel`): 30% off a 160 x 120
-            # scene, for 5-9 s of tracing per process (split kernels are not kept on disk) that only
-            # many scenes win back. One input stays on one device, whose kernels load from the disk
-            # cache: a 640 x 480 mOSD scene, second call, 19.7 -> 9.8 s wall (2026-12-03)
+            # scene (2026-12-03); the split kernels load from the disk cache as the others do (three
+            # 640 x 480 mOSD scenes, second call: 26.9 -> 21.4 s wall, 2026-12-08). One input stays on
+            # one device: test40 at 640 x 480, second call, segmented in 6.3-6.5 s on one device and
+            # 7.0-7.1 s on two (2026-12-08; kernel loads 1.3-1.5 s of each)
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()
