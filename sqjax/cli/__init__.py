@@ -113,8 +113,10 @@ def main(argv=None) -> int:
             # every core a JAX device, batches split over them (`sqjax.parallel`): 30% off a 160 x 120
             # scene (2026-12-03); the split kernels load from the disk cache as the others do (three
             # 640 x 480 mOSD scenes, second call: 26.9 -> 21.4 s wall, 2026-12-08). One input stays on
-            # one device: test40 at 640 x 480, second call, segmented in 6.3-6.5 s on one device and
-            # 7.0-7.1 s on two (2026-12-08; kernel loads 1.3-1.5 s of each)
+            # one device. Its second call on two (2026-12-08, segment's seconds, loads included): Bobkov
+            # room2 (124k points) 11.6-11.7 s against 14.9-16.4; images (mOSD test40 at 640 x 480, the
+            # PCL mug and milk frames) within 0.5 s either way; small clouds (iCub toy, an EMS example)
+            # 0-0.6 s slower. Only a large cloud pays, and its size is known only after the read
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()
