@@ -116,7 +116,7 @@ def main(argv=None) -> int:
             # one device. Its second call on two (2026-12-08, segment's seconds, loads included): Bobkov
             # room2 (124k points) 11.6-11.7 s against 14.9-16.4; images (mOSD test40 at 640 x 480, the
             # PCL mug and milk frames) within 0.5 s either way; small clouds (iCub toy, an EMS example)
-            # 0-0.6 s slower. Only a large cloud pays, and its size is known only after the read
+            # 0-0.6 s slower. Only a large cloud pays; a choice by the input's size is not built
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()
