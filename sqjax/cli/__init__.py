@@ -113,10 +113,12 @@ def main(argv=None) -> int:
             # every core a JAX device, batches split over them (`sqjax.parallel`): 30% off a 160 x 120
             # scene (2026-12-03); the split kernels load from the disk cache as the others do (three
             # 640 x 480 mOSD scenes, second call: 26.9 -> 21.4 s wall, 2026-12-08). One input stays on
-            # one device. Its second call on two (2026-12-08, segment's seconds, loads included): Bobkov
-            # room2 (124k points) 11.6-11.7 s against 14.9-16.4; images (mOSD test40 at 640 x 480, the
-            # PCL mug and milk frames) within 0.5 s either way; small clouds (iCub toy, an EMS example)
-            # 0-0.6 s slower. Only a large cloud pays; a choice by the input's size is not built
+            # one device. Its second call on two (2026-12-08, segment's seconds, loads included): images
+            # (mOSD test40 at 640 x 480, the PCL mug and milk frames) within 0.5 s either way; small
+            # clouds (iCub toy, an EMS example) 0-0.6 s slower; Bobkov room2 (124k points), alternating
+            # with one device, 12.4 / 13.5 / 14.0 s against 13.6 / 15.3 / 16.0 s (room1, 238k: 18.8 and
+            # 19.3 against 18.2 and 21.1). So a cloud above its working subset goes to every core once
+            # read (`segment._segment_file`), while the kernels are kept on disk
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()
