@@ -351,14 +351,12 @@ def _callable(exported, options: dict):
     and its time within the machine's drift (six mOSD scenes on two devices, 2026-12-08: 17.9 and
     19.4 s against 18.0 and 18.3 s traced)."""
     import jax
-    import numpy as np
+
+    from .parallel import device_mesh
 
     kw = with_options(options)
-    if exported.nr_devices > 1:
-        devices = jax.local_devices()
-        if len(devices) != exported.nr_devices:
-            raise ValueError(f"exported for {exported.nr_devices} devices, {len(devices)} here")
-        whole = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("k",)), jax.sharding.PartitionSpec())
+    if exported.nr_devices > 1:  # the same count as here: it is part of the key
+        whole = jax.sharding.NamedSharding(device_mesh(), jax.sharding.PartitionSpec())
         kw.update(in_shardings=whole, out_shardings=whole)
     return jax.jit(exported.call, **kw)
 

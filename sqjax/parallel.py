@@ -36,10 +36,15 @@ def splits(n: int, at_least: int = 0) -> bool:
     return d > 1 and n % d == 0 and n >= at_least
 
 
+def device_mesh() -> jax.sharding.Mesh:
+    """The local devices in one axis, "k": what `shard` splits a batch over."""
+    return jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
+
+
 def shard(fn, sharded: tuple[bool, ...]):
     """`fn` (a function of arrays) over the CPU devices: the arguments marked in `sharded` split along
     their first axis, the others replicated; the outputs joined along their first axis."""
-    mesh = jax.sharding.Mesh(np.array(jax.local_devices()), ("k",))
+    mesh = device_mesh()
     spec = jax.sharding.PartitionSpec
     in_specs = tuple(spec("k") if s else spec() for s in sharded)
     return jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=spec("k"), check_vma=False)
