@@ -170,11 +170,6 @@ _KEEP_VERSIONS = 4
 """Folders of other sqjax sources / JAX versions kept beside the current one (the oldest go)."""
 
 
-def kernels_kept() -> bool:
-    """Whether `persistent_kernel` modules are kept on disk (a kernel folder is set)."""
-    return _KERNEL_DIR is not None
-
-
 def set_kernel_dir(path) -> Path | None:
     """Keep `persistent_kernel` modules under `path` (None turns it off). `enable_compilation_cache`
     calls it; without JAX's compilation cache the modules would still be compiled on every run."""

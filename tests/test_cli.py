@@ -709,22 +709,3 @@ def test_a_principal_point_far_from_the_image_centre_gets_a_note():
     assert "principal point (80, 60) is far from the centre of the 1280 x 720 image (639.5, 359.5)" in note
     assert camera_hint(RangeImage(depth, PinholeCamera(900.0, 900.0, 650.0, 350.0)), "range_image") == ""
     assert camera_hint(np.zeros((10, 3)), "point_cloud") == ""
-
-
-@pytest.mark.parametrize("points, kept, split", [(90_000, True, True), (90_000, False, False), (5_000, True, False)])
-def test_a_cloud_above_its_working_subset_goes_to_every_core(monkeypatch, tmp_path, points, kept, split):
-    """One input runs on one device, except a cloud larger than its working subset while the kernels
-    are kept on disk (split kernels would be traced in every process otherwise): it is faster on
-    every core (Bobkov room2, cli/__init__.py). The decision, without segmenting."""
-    from sqjax import cache, parallel
-    from sqjax.segmentation import WORKING_POINTS
-
-    assert (points > WORKING_POINTS) == (points == 90_000)
-    calls = []
-    monkeypatch.setattr(parallel, "use_cpu_cores", lambda n=None: calls.append(n) or 1)
-    monkeypatch.setattr(importlib.import_module("sqjax.cli.segment"), "segment_and_write", lambda *a, **k: None)
-    monkeypatch.setattr(cache, "kernels_kept", lambda: kept)
-    path = tmp_path / "cloud.npy"
-    np.save(path, np.random.default_rng(0).normal(size=(points, 3)).astype(np.float32))
-    assert main(["segment", str(path), "--out", str(tmp_path / "out"), "--no-cache"]) == 0
-    assert bool(calls) == split

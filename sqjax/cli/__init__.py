@@ -116,9 +116,9 @@ def main(argv=None) -> int:
             # one device. Its second call on two (2026-12-08, segment's seconds, loads included): images
             # (mOSD test40 at 640 x 480, the PCL mug and milk frames) within 0.5 s either way; small
             # clouds (iCub toy, an EMS example) 0-0.6 s slower; Bobkov room2 (124k points), alternating
-            # with one device, 12.4 / 13.5 / 14.0 s against 13.6 / 15.3 / 16.0 s (room1, 238k: 18.8 and
-            # 19.3 against 18.2 and 21.1). So a cloud above its working subset goes to every core once
-            # read (`segment._segment_file`), while the kernels are kept on disk
+            # with one device, 12.4 / 13.5 / 14.0 s against 13.6 / 15.3 / 16.0 s, but in
+            # benchmarks/files.py (a fresh cache) room1, room2 and its coarse labels ran 18.5, 14.1 and
+            # 14.2 s against 18.7, 15.1 and 14.1 s, for 0.1-2.1 s more compile: not enough to split one
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()

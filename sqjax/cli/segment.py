@@ -128,11 +128,8 @@ def run(args) -> int:
 
 
 def _segment_file(args, path, options, out) -> int:
-    from ..cache import kernels_kept
     from ..formats import read_input
-    from ..parallel import use_cpu_cores
     from ..rangeimage import RangeImage
-    from ..segmentation import WORKING_POINTS
 
     data, kind = read_input(
         path,
@@ -143,8 +140,6 @@ def _segment_file(args, path, options, out) -> int:
         intrinsics=args.intrinsics,
     )
     input_shape = data.shape if isinstance(data, RangeImage) else (len(data),)
-    if kind == "point_cloud" and input_shape[0] > WORKING_POINTS and kernels_kept():
-        use_cpu_cores()  # a cloud larger than its working subset: faster on every core (cli/__init__.py)
     # segmented at a working resolution (clouds: on a working subset of the points), labelled at the input's
     options = options.replace(subsample=args.subsample)
     camera_source = (
