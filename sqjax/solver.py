@@ -285,16 +285,18 @@ default emitters (`cache.kernel_jit`: run on whole batches, its throughput matte
 
 def _split_over_devices(problems, fast_compile: bool = True):
     """`problems(points, mask, start, opts)` jitted with the problems split over every local CPU device
-    (`parallel.shard`; the start, when given, split with them); `fast_compile` as `cache.kernel_jit`."""
+    (`parallel.shard`; the start, when given, split with them); `fast_compile` as `cache.kernel_jit`.
+    Kept on disk as the other kernels are (`cache.persistent_kernel`), named after `problems`."""
 
     def run(points, mask, start, opts):
         body = lambda p, m, s: problems(p, m, s, opts)
         return shard(body, (True, True, start is not None))(points, mask, start)
 
-    return kernel_jit(run, filter=True, fast_compile=fast_compile)
+    name = f"{problems.__module__}.{problems.__qualname__}.split"
+    return persistent_kernel(kernel_jit(run, filter=True, fast_compile=fast_compile), name=name)
 
 
-fit_sharded = persistent_kernel(_split_over_devices(fit_problems, fast_compile=False), name="sqjax.solver.fit_sharded")
+fit_sharded = _split_over_devices(fit_problems, fast_compile=False)
 """`fit_kernel` with the problems split over the CPU devices."""
-fit_padded_sharded = persistent_kernel(_split_over_devices(padded_problems), name="sqjax.solver.fit_padded_sharded")
+fit_padded_sharded = _split_over_devices(padded_problems)
 """`fit_padded` with the problems split over the CPU devices."""

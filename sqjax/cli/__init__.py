@@ -118,7 +118,7 @@ def main(argv=None) -> int:
             # clouds (iCub toy, an EMS example) 0-0.6 s slower; Bobkov room2 (124k points), alternating
             # with one device, 12.4 / 13.5 / 14.0 s against 13.6 / 15.3 / 16.0 s, but in
             # benchmarks/files.py (a fresh cache) room1, room2 and its coarse labels ran 18.5, 14.1 and
-            # 14.2 s against 18.7, 15.1 and 14.1 s, for 0.1-2.1 s more compile: not enough to split one
+            # 14.2 s against 18.7, 15.1 and 14.1 s, for 0.1-2.1 s more compile: one input is not split
             from ..parallel import use_cpu_cores
 
             use_cpu_cores()
